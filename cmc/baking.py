@@ -1,0 +1,197 @@
+"""Baked MPIs: explicit RGBA planes on disk, and a renderer that needs only those files.
+
+On-disk format ``cmc-mpi`` version 1 (a folder; every file is browser-loadable):
+
+* ``mpi.json``::
+
+    {"format": "cmc-mpi", "version": 1,
+     "convention": "opencv",          # camera axes x right, y down, z forward; see cmc.cameras
+     "width": W, "height": H,         # size of the input images (pixels)
+     "near": n, "far": f,             # plane range, scene units
+     "blend": {"weights": "inverse_square_distance", "eps_baseline_fraction": 0.1,
+               "baseline": b},        # see cmc.geometry.blend_weights
+     "mpis": [{"K": 3x3,              # reference intrinsics, pixels, corner-origin
+               "world_from_cam": 4x4, # reference camera-to-world
+               "depths": [D floats],  # plane depths (reference camera z), nearest first
+               "margin": m,           # planes cover the image enlarged m times about its centre
+               "tile": [h, w],        # texels per plane
+               "grid": [rows, cols],  # tiles in the atlas, row-major, plane k at (k // cols, k % cols)
+               "atlas": "mpi_00.png"}, ...]}
+
+* ``mpi_XX.png``: 8-bit RGBA atlas of the D planes, straight (not premultiplied) alpha. Texel
+  (r, c) of a tile covers reference pixel coordinates
+  ``((c + 0.5) / w * 2 - 1) * m`` -> ``u = (x * m + 1) / 2 * W`` (same for v with h, H), i.e.
+  the tile spans the image's extent enlarged ``m`` times about the image centre.
+
+Rendering composites each MPI front to back and blends them exactly as
+:func:`cmc.rendering.render_image` does (the baked renderer *is* that function, over
+:class:`cmc.fields.TextureField` fields).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from cmc.fields import MPIField, TextureField
+from cmc.geometry import mean_baseline
+from cmc.model import CMCModel
+from cmc.rendering import ImageOutput, MPIFrame, render_image
+
+FORMAT = "cmc-mpi"
+VERSION = 1
+MANIFEST = "mpi.json"
+
+
+class BakedFormatError(ValueError):
+    """A baked folder that cannot be read; the message names the problem."""
+
+
+@torch.no_grad()
+def bake_textures(
+    field: MPIField, frame: MPIFrame, tile: tuple[int, int] | None = None, chunk: int = 1 << 15
+) -> torch.Tensor:
+    """Evaluate a field on a texel grid: [D, 4, h, w] straight RGBA in [0, 1].
+
+    Each texel is seen along the reference camera's ray through it (view-dependent fields are
+    baked as the reference camera sees them). ``tile`` defaults to the plane extent.
+    """
+    h, w = tile or frame.extent
+    dev = frame.K.device
+    ys = (torch.arange(h, device=dev, dtype=torch.float32) + 0.5) / h * 2 - 1
+    xs = (torch.arange(w, device=dev, dtype=torch.float32) + 0.5) / w * 2 - 1
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    g = torch.stack([gx, gy], -1).reshape(-1, 2)
+    uv = frame.pixels_from_grid(g)
+    dirs = torch.cat([uv, torch.ones_like(uv[:, :1])], -1) @ torch.linalg.inv(frame.K).T
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
+    D = frame.depths.shape[0]
+    parts = []
+    for s in range(0, len(g), chunk):
+        gc = g[s : s + chunk, None].expand(-1, D, 2)
+        rgb, alpha = field(gc, frame.plane_z, dirs[s : s + chunk])
+        parts.append(torch.cat([rgb, alpha[..., None]], -1))  # [R, D, 4]
+    return torch.cat(parts).reshape(h, w, D, 4).permute(2, 3, 0, 1).contiguous()
+
+
+def _atlas_grid(num_planes: int) -> tuple[int, int]:
+    cols = math.ceil(math.sqrt(num_planes))
+    return math.ceil(num_planes / cols), cols
+
+
+def bake(model: CMCModel, out_dir: str | Path, scale: float = 1.0) -> Path:
+    """Write ``model`` in the ``cmc-mpi`` format; ``scale`` multiplies the texel resolution."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    mpis = []
+    for i, (field, frame) in enumerate(zip(model.fields, model.frames, strict=True)):
+        h, w = (max(2, round(s * scale)) for s in frame.extent)
+        rgba = bake_textures(field, frame, (h, w))  # type: ignore[arg-type]
+        D = rgba.shape[0]
+        rows, cols = _atlas_grid(D)
+        atlas = np.zeros((rows * h, cols * w, 4), dtype=np.uint8)
+        tiles = (rgba.clamp(0, 1) * 255 + 0.5).to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+        for k in range(D):
+            r, c = divmod(k, cols)
+            atlas[r * h : (r + 1) * h, c * w : (c + 1) * w] = tiles[k]
+        name = f"mpi_{i:02d}.png"
+        Image.fromarray(atlas, "RGBA").save(out / name, compress_level=1)
+        mpis.append(
+            {
+                "K": frame.K.cpu().tolist(),
+                "world_from_cam": frame.world_from_ref.cpu().tolist(),
+                "depths": frame.depths.cpu().tolist(),
+                "margin": frame.margin,
+                "tile": [h, w],
+                "grid": [rows, cols],
+                "atlas": name,
+            }
+        )
+    centers = torch.stack([f.world_from_ref[:3, 3] for f in model.frames]).cpu()
+    manifest = {
+        "format": FORMAT,
+        "version": VERSION,
+        "convention": "opencv",
+        "width": model.width,
+        "height": model.height,
+        "near": model.near,
+        "far": model.far,
+        "blend": {
+            "weights": "inverse_square_distance",
+            "eps_baseline_fraction": 0.1,
+            "baseline": mean_baseline(centers),
+        },
+        "mpis": mpis,
+    }
+    tmp = out / (MANIFEST + ".tmp")
+    tmp.write_text(json.dumps(manifest, indent=1))
+    tmp.replace(out / MANIFEST)  # the manifest appears last: a folder with it is complete
+    return out
+
+
+@dataclass
+class BakedScene:
+    """A loaded baked folder: textures as :class:`TextureField` plus their frames."""
+
+    fields: list[TextureField]
+    frames: list[MPIFrame]
+    width: int
+    height: int
+    near: float
+    far: float
+
+    @staticmethod
+    def load(folder: str | Path, device: str | torch.device = "cpu") -> BakedScene:
+        folder = Path(folder)
+        try:
+            m = json.loads((folder / MANIFEST).read_text())
+        except FileNotFoundError:
+            raise BakedFormatError(f"no {MANIFEST} in {folder}: not a baked MPI folder") from None
+        except json.JSONDecodeError as e:
+            raise BakedFormatError(f"{folder / MANIFEST} is not valid JSON: {e}") from None
+        if m.get("format") != FORMAT or m.get("version") != VERSION:
+            raise BakedFormatError(
+                f"{folder} holds {m.get('format')} v{m.get('version')}, expected {FORMAT} v{VERSION}"
+            )
+        fields, frames = [], []
+        for e in m["mpis"]:
+            (h, w), (rows, cols) = e["tile"], e["grid"]
+            name = Path(e["atlas"]).name  # never follow paths out of the folder
+            with Image.open(folder / name) as im:
+                atlas = np.asarray(im.convert("RGBA"))
+            D = len(e["depths"])
+            if atlas.shape[:2] != (rows * h, cols * w) or rows * cols < D:
+                raise BakedFormatError(f"{name} is {atlas.shape[1]}x{atlas.shape[0]}, expected {cols * w}x{rows * h}")
+            tiles = atlas.reshape(rows, h, cols, w, 4).transpose(0, 2, 4, 1, 3).reshape(rows * cols, 4, h, w)[:D]
+            rgba = torch.as_tensor(tiles.astype(np.float32) / 255.0, device=device)
+            t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device)  # noqa: E731
+            frames.append(
+                MPIFrame(t(e["K"]), t(e["world_from_cam"]), t(e["depths"]), m["width"], m["height"], float(e["margin"]))
+            )
+            fields.append(TextureField(rgba))
+        return BakedScene(fields, frames, int(m["width"]), int(m["height"]), float(m["near"]), float(m["far"]))
+
+    def render(
+        self,
+        K: np.ndarray,
+        world_from_cam: np.ndarray,
+        width: int | None = None,
+        height: int | None = None,
+        min_weight: float = 0.0,
+    ) -> ImageOutput:
+        """Colour and depth for any camera (OpenCV convention), default size the input size."""
+        return render_image(
+            self.fields,
+            self.frames,
+            K,
+            world_from_cam,
+            width or self.width,
+            height or self.height,
+            min_weight=min_weight,
+        )

@@ -1,0 +1,208 @@
+"""The ``cmc`` command line: train, render, bench, demo. Run ``cmc COMMAND --help``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from cmc.baking import BakedFormatError, BakedScene, bake
+from cmc.cameras import CameraError, load_camera_file
+from cmc.config import PRESETS, preset_config
+from cmc.datasets import SceneError, load_scene_folder, save_image
+from cmc.training import Progress, Trainer, TrainingCancelled
+
+
+class ProgressBar:
+    """A tqdm bar fed by training progress hooks."""
+
+    def __init__(self, desc: str, total: int):
+        self.bar = tqdm(total=total, desc=desc, unit="step", dynamic_ncols=True)
+
+    def __call__(self, p: Progress) -> None:
+        self.bar.n = p.step
+        self.bar.set_postfix(mse=f"{p.losses['mse']:.4f}", ac=f"{p.losses['ac']:.4f}", refresh=False)
+        self.bar.refresh()
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError("--device cuda asked for, but torch sees no CUDA device")
+    return torch.device(name)
+
+
+def _config(args: argparse.Namespace):
+    overrides = {k: v for k, v in (("steps", args.steps), ("seed", args.seed)) if v is not None}
+    return preset_config(args.preset, **overrides)
+
+
+def cmd_train(args: argparse.Namespace) -> None:
+    scene = load_scene_folder(args.scene)
+    cfg = _config(args)
+    out = Path(args.out)
+    trainer = Trainer(scene, cfg, _device(args.device))
+    bar = ProgressBar("train", cfg.steps)
+    stop = []  # Ctrl-C asks the trainer to checkpoint and stop at the end of the step
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.append(True))
+    try:
+        result = trainer.fit(
+            on_progress=bar,
+            should_stop=lambda: bool(stop),
+            checkpoint_path=out / "checkpoint.pt",
+            resume=not args.restart,
+        )
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        bar.close()
+    baked = bake(trainer.model, out / "baked", scale=args.bake_scale)
+    (out / "train.json").write_text(
+        json.dumps(
+            {"steps": result.steps, "seconds_this_run": result.seconds, "config": cfg.to_dict(), "baked": str(baked)},
+            indent=1,
+        )
+    )
+    print(f"trained {result.steps} steps; baked MPIs in {baked}")
+
+
+def cmd_render(args: argparse.Namespace) -> None:
+    baked = BakedScene.load(args.baked)
+    cams = load_camera_file(args.cameras)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    from cmc.demo import depth_preview
+
+    for i, name in enumerate(tqdm(cams.file_paths, desc="render", unit="view")):
+        c = cams.cameras[i]
+        r = baked.render(c.K[0], c.world_from_cam[0], c.width, c.height)
+        stem = Path(name).stem
+        save_image(out / f"{stem}.png", r.rgb.numpy())
+        np.save(out / f"{stem}_depth.npy", r.depth.numpy().astype(np.float32))
+        save_image(out / f"{stem}_depth.png", depth_preview(r.depth.numpy(), baked.near, baked.far))
+    print(f"rendered {len(cams.file_paths)} views to {out} (depth: float32 .npy, camera z in scene units)")
+
+
+ABLATIONS = {
+    "mse": dict(lambda_dc_input=0.0, lambda_ac=0.0, lambda_dc=0.0),
+    "mse+dcI": dict(lambda_dc_input=1.0, lambda_ac=0.0, lambda_dc=0.0),
+    "mse+dcI+ac": dict(lambda_dc_input=1.0, lambda_ac=1.0, lambda_dc=0.0),
+    "full": dict(lambda_dc_input=1.0, lambda_ac=1.0, lambda_dc=1.0),
+}
+
+
+def cmd_bench(args: argparse.Namespace) -> None:
+    from cmc.bench import markdown_table, run_llff_bench, write_report
+
+    if args.dataset != "llff":
+        raise ValueError(f"unknown benchmark {args.dataset!r}; only 'llff' exists")
+    lpips_dir = args.lpips_weights or os.environ.get("CMC_LPIPS_DIR")
+    if not lpips_dir:
+        raise ValueError("LPIPS weights needed: pass --lpips-weights DIR or set CMC_LPIPS_DIR")
+    device = _device(args.device)
+    base = _config(args)
+    variants = {"": base}
+    if args.ablation:
+        variants = {f"-{k}": replace(base, loss=replace(base.loss, **v)) for k, v in ABLATIONS.items()}
+    for suffix, cfg in variants.items():
+        bar: dict[str, ProgressBar] = {}
+
+        def hook(scene: str, p: Progress, bar=bar, suffix=suffix, steps=cfg.steps) -> None:
+            bar.setdefault(scene, ProgressBar(f"{scene}{suffix}", steps))(p)
+
+        save = Path(args.save_dir) / (args.preset + suffix) if args.save_dir else None
+        report = run_llff_bench(Path(args.data), args.scenes.split(","), cfg, device, lpips_dir, save, hook)
+        for b in bar.values():
+            b.close()
+        if suffix:
+            report["ablation"] = suffix[1:]
+        out = Path(args.out)
+        out = out.with_name(out.stem + suffix + out.suffix)
+        write_report(report, out)
+        print(markdown_table(report))
+        print(f"wrote {out} and {out.with_suffix('.md')}")
+
+
+def cmd_demo(args: argparse.Namespace) -> None:
+    from cmc.demo import run_demo
+
+    bar = ProgressBar("demo", args.steps)
+    try:
+        summary = run_demo(Path(args.out), steps=args.steps, on_progress=bar)
+    finally:
+        bar.close()
+    print(json.dumps(summary, indent=1))
+    print(f"outputs in {args.out}/")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cmc", description="Few-shot novel view synthesis with per-view MPIs (CMC).")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def train_opts(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--preset", choices=PRESETS, default="fast", help="model/training preset (default fast)")
+        sp.add_argument("--steps", type=int, help="training steps (default: the preset's)")
+        sp.add_argument("--seed", type=int, help="random seed (default 0)")
+        sp.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default)")
+
+    t = sub.add_parser("train", help="train on a scene folder (images + cameras.json), checkpoint and bake")
+    t.add_argument("scene", help="scene folder with cameras.json (transforms.json shape, near/far)")
+    t.add_argument("--out", required=True, help="output folder: checkpoint.pt, baked/, train.json")
+    t.add_argument("--restart", action="store_true", help="ignore an existing checkpoint instead of resuming")
+    t.add_argument("--bake-scale", type=float, default=1.0, help="baked texture resolution factor")
+    train_opts(t)
+    t.set_defaults(func=cmd_train)
+
+    r = sub.add_parser("render", help="render colour and depth of every camera in a cameras file from a baked MPI")
+    r.add_argument("baked", help="baked folder (mpi.json + atlases)")
+    r.add_argument("--cameras", required=True, help="cameras file (transforms.json shape)")
+    r.add_argument("--out", required=True, help="output folder")
+    r.set_defaults(func=cmd_render)
+
+    b = sub.add_parser("bench", help="benchmark on a dataset with the paper's protocol")
+    b.add_argument("dataset", choices=["llff"])
+    b.add_argument("--data", required=True, help="folder holding the LLFF scene folders")
+    b.add_argument("--scenes", default="fern", help="comma-separated scene names (default fern)")
+    b.add_argument("--out", required=True, help="report path (.json; a .md table is written beside it)")
+    b.add_argument("--lpips-weights", help="folder with lpips_alex.pth and lpips_vgg.pth (or CMC_LPIPS_DIR)")
+    b.add_argument("--save-dir", help="also keep baked MPIs and test renders here")
+    b.add_argument("--ablation", action="store_true", help="run the paper's loss ablation (4 runs)")
+    train_opts(b)
+    b.set_defaults(func=cmd_bench)
+
+    d = sub.add_parser("demo", help="reconstruct a synthetic scene from 3 views on the CPU")
+    d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
+    d.add_argument("--steps", type=int, default=300, help="training steps (default 300)")
+    d.set_defaults(func=cmd_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        args.func(args)
+    except (SceneError, CameraError, BakedFormatError, ValueError, FileNotFoundError) as e:
+        print(f"cmc {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except TrainingCancelled as e:
+        print(f"cmc {args.command}: {e}; run again to resume", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:
+        print(f"cmc {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

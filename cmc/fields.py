@@ -1,0 +1,161 @@
+"""Per-view MPI fields: what one multiplane image holds at a point of one of its planes.
+
+A field answers, for rays that cross all D planes of its MPI, the colour and alpha at each
+crossing. Crossings are given in *plane grid coordinates* ``g`` in [-1, 1]^2 (x right, y down),
+the ``grid_sample(align_corners=False)`` convention: g = (-1, -1) is the top-left corner of the
+plane's extent, which is the reference image enlarged by the MPI's margin (see
+:class:`cmc.rendering.MPIFrame`). Points outside [-1, 1] are masked by the renderer.
+
+Fields:
+* :class:`MLPField` -- the paper's: an MLP over (positional encoding of (g, plane coordinate),
+  raw ray direction) -> (rgb, alpha).
+* :class:`PyramidPlaneField` -- the ``fast`` preset: explicit textures. Colour is a full-resolution
+  base image shared by all planes (initialised to the reference photo) plus a per-plane
+  multi-resolution residual; alpha is a per-plane multi-resolution grid. Summing bilinear
+  samples of coarse-to-fine levels makes coarse levels learn first and acts as a smoothness prior.
+* :class:`TextureField` -- fixed RGBA textures, the form a baked MPI takes.
+
+All fields keep the farthest plane opaque (alpha = 1) so that every covered ray is fully
+composited.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+class MPIField(nn.Module):
+    """Base class. ``forward(g, plane_z, dirs) -> (rgb, alpha)``.
+
+    Shape:
+        g: [R, D, 2] plane grid coordinates; plane_z: [D] plane coordinate in [-1, 1]
+        (normalised disparity, -1 = nearest); dirs: [R, 3] unit ray directions in the
+        reference camera's frame. Returns rgb [R, D, 3] in [0, 1] and alpha [R, D] in [0, 1].
+    """
+
+    num_planes: int
+
+
+def _opaque_back(alpha: torch.Tensor) -> torch.Tensor:
+    """Force the last plane (dim -1) to alpha 1 without in-place writes (autograd-safe)."""
+    last = torch.zeros_like(alpha)
+    last[..., -1] = 1.0
+    return torch.maximum(alpha, last)
+
+
+def positional_encoding(x: torch.Tensor, num_freqs: int) -> torch.Tensor:
+    """Paper Eq. 4.4: [..., C] -> [..., 2 * C * num_freqs], (sin(2^k x), cos(2^k x)) per k."""
+    freqs = 2.0 ** torch.arange(num_freqs, device=x.device, dtype=x.dtype)
+    xf = x[..., None, :] * freqs[:, None]  # [..., L, C]
+    return torch.cat([torch.sin(xf), torch.cos(xf)], dim=-1).flatten(-2)
+
+
+@dataclass
+class MLPFieldConfig:
+    """The paper's MLP (Sec. 5.1)."""
+
+    width: int = 256  # hidden units per layer
+    depth: int = 6  # hidden layers
+    pe_freqs: int = 10  # positional-encoding frequencies L for the point
+    leaky_slope: float = 0.01
+
+
+class MLPField(MPIField):
+    """F_i(gamma(x), d) -> (rgb, alpha) with x = (g_x, g_y, plane_z) and d the raw direction."""
+
+    def __init__(self, num_planes: int, cfg: MLPFieldConfig):
+        super().__init__()
+        self.num_planes = num_planes
+        self.cfg = cfg
+        in_dim = 3 * 2 * cfg.pe_freqs + 3
+        layers: list[nn.Module] = []
+        for k in range(cfg.depth):
+            layers += [nn.Linear(in_dim if k == 0 else cfg.width, cfg.width), nn.LeakyReLU(cfg.leaky_slope)]
+        layers.append(nn.Linear(cfg.width, 4))
+        self.mlp = nn.Sequential(*layers)
+
+    def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
+        R, D, _ = g.shape
+        x = torch.cat([g, plane_z[None, :, None].expand(R, D, 1)], dim=-1)
+        feats = torch.cat([positional_encoding(x, self.cfg.pe_freqs), dirs[:, None].expand(R, D, 3)], dim=-1)
+        out = self.mlp(feats)
+        return torch.sigmoid(out[..., :3]), _opaque_back(torch.sigmoid(out[..., 3]))
+
+
+@dataclass
+class PyramidFieldConfig:
+    """Explicit multi-resolution plane textures (the ``fast`` preset)."""
+
+    scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane RGBA residual levels
+    base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
+
+
+class PyramidPlaneField(MPIField):
+    """Explicit per-plane textures; see the module docstring.
+
+    Colour logits = base(g) + sum_l level_l(g)[:3]; alpha logit = sum_l level_l(g)[3], where
+    base is [3, h, w] and level l is [D, 4, h * s_l, w * s_l], all sampled bilinearly.
+
+    Args:
+        num_planes: D.
+        height, width: plane extent in reference-image pixels (image size times margin).
+        cfg: level scales.
+        init_rgb: [3, h, w] initial base colour in [0, 1] (the reference photo, padded).
+    """
+
+    def __init__(self, num_planes: int, height: int, width: int, cfg: PyramidFieldConfig, init_rgb: torch.Tensor):
+        super().__init__()
+        self.num_planes = num_planes
+        self.cfg = cfg
+
+        def size(s: float) -> tuple[int, int]:
+            return max(2, round(height * s)), max(2, round(width * s))
+
+        base = F.interpolate(init_rgb[None].float(), size=size(cfg.base_scale), mode="bilinear", align_corners=False)
+        self.base = nn.Parameter(torch.logit(base[0].clamp(0.02, 0.98)))
+        # Initial alpha 1 / (D - k), held by the coarsest level: every plane contributes equally.
+        k = torch.arange(num_planes, dtype=torch.float32)
+        alpha0 = torch.logit((1.0 / (num_planes - k)).clamp(max=0.99))
+        self.levels = nn.ParameterList()
+        for n, s in enumerate(cfg.scales):
+            lvl = torch.zeros(num_planes, 4, *size(s))
+            if n == len(cfg.scales) - 1:
+                lvl[:, 3] = alpha0[:, None, None]
+            self.levels.append(nn.Parameter(lvl))
+
+    def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
+        D = g.shape[1]
+        grid = g.permute(1, 0, 2)[:, None]  # [D, 1, R, 2]
+        base = F.grid_sample(self.base[None], grid.reshape(1, 1, -1, 2), align_corners=False)
+        logits = sum(F.grid_sample(lvl, grid, align_corners=False)[:, :, 0] for lvl in self.levels)  # [D, 4, R]
+        color = logits[:, :3] + base.reshape(3, D, -1).transpose(0, 1)  # type: ignore[index]
+        alpha = logits[:, 3]  # type: ignore[index]
+        return torch.sigmoid(color.permute(2, 0, 1)), _opaque_back(torch.sigmoid(alpha.T))
+
+    def smoothness(self) -> torch.Tensor:
+        """Mean squared finite difference of the finest level's alpha (a total-variation prior)."""
+        a = self.levels[0][:, 3]
+        return ((a[:, 1:, :] - a[:, :-1, :]) ** 2).mean() + ((a[:, :, 1:] - a[:, :, :-1]) ** 2).mean()
+
+
+class TextureField(MPIField):
+    """Fixed RGBA plane textures [D, 4, h, w] (straight alpha), e.g. a baked MPI."""
+
+    def __init__(self, rgba: torch.Tensor):
+        super().__init__()
+        self.num_planes = rgba.shape[0]
+        self.register_buffer("rgba", rgba)
+
+    def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
+        s = F.grid_sample(self.rgba, g.permute(1, 0, 2)[:, None], align_corners=False)[:, :, 0]  # [D, 4, R]
+        s = s.permute(2, 0, 1)
+        return s[..., :3], _opaque_back(s[..., 3])
+
+
+def field_param_count(field: nn.Module) -> int:
+    """Number of trainable scalars."""
+    return sum(p.numel() for p in field.parameters() if p.requires_grad)

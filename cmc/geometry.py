@@ -1,0 +1,137 @@
+"""Plane geometry of multiplane images: plane depths, plane-induced homographies, virtual poses.
+
+Conventions are those of :mod:`cmc.cameras` (OpenCV axes, camera-to-world ``world_from_cam``,
+pixel corners at integers). An MPI belongs to a reference camera ``ref``; its plane k is the
+fronto-parallel plane ``z_ref = depth[k]`` in that camera. Planes are ordered front to back
+(nearest first), which is the compositing order.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+def plane_depths(near: float, far: float, num_planes: int) -> np.ndarray:
+    """[D] plane depths uniform in disparity from ``near`` (index 0) to ``far`` (index D-1)."""
+    if not (np.isfinite(near) and np.isfinite(far)) or not 0 < near < far:
+        raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
+    if num_planes < 2:
+        raise ValueError(f"need at least 2 planes, got {num_planes}")
+    return 1.0 / np.linspace(1.0 / near, 1.0 / far, num_planes)
+
+
+def homographies_ref_from_tgt(
+    K_ref: torch.Tensor,
+    ref_from_world: torch.Tensor,
+    K_tgt: torch.Tensor,
+    world_from_tgt: torch.Tensor,
+    depths: torch.Tensor,
+) -> torch.Tensor:
+    """Plane-induced homographies taking target pixels to reference pixels (paper Eq. 4.1-4.2).
+
+    For plane ``z_ref = depth`` of the reference camera, a target pixel ``p_t`` (homogeneous,
+    continuous pixel coordinates) sees the plane point that projects to ``H @ p_t`` in the
+    reference image, with ``H = K_ref (R + t n_t^T / d_t) K_tgt^-1``, where ``[R | t]`` is
+    ``ref_from_tgt`` and ``n_t^T X_t = d_t`` is the plane in target coordinates.
+
+    Shape:
+        K_ref, K_tgt: [..., 3, 3]; ref_from_world, world_from_tgt: [..., 4, 4];
+        depths: [..., D]. Leading dims broadcast. Returns [..., D, 3, 3].
+    """
+    ref_from_tgt = ref_from_world @ world_from_tgt
+    R = ref_from_tgt[..., :3, :3]
+    t = ref_from_tgt[..., :3, 3]
+    # Plane n^T X_ref = z with n = e_z; in target coordinates n_t = R^T n, d_t = z - n^T t.
+    n_t = R[..., 2, :]  # [..., 3]
+    d_t = depths - t[..., 2:3]  # [..., D]
+    H_cam = R[..., None, :, :] + t[..., None, :, None] * n_t[..., None, None, :] / d_t[..., None, None]
+    return K_ref[..., None, :, :] @ H_cam @ torch.linalg.inv(K_tgt)[..., None, :, :]
+
+
+def apply_homography(H: torch.Tensor, uv: torch.Tensor, eps: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor]:
+    """Map pixel coordinates through homographies.
+
+    Shape:
+        H: [..., D, 3, 3]; uv: [..., R, 2] continuous pixel coordinates.
+        Returns uv' [..., R, D, 2] and valid [..., R, D] (the point lies in front, w > eps).
+    """
+    ones = torch.ones_like(uv[..., :1])
+    p = torch.cat([uv, ones], dim=-1)  # [..., R, 3]
+    q = torch.einsum("...dij,...rj->...rdi", H, p)
+    w = q[..., 2]
+    valid = w > eps
+    w = torch.where(valid, w, torch.full_like(w, eps))
+    return q[..., :2] / w[..., None], valid
+
+
+def pixel_centers(width: int, height: int, device: torch.device | str = "cpu") -> torch.Tensor:
+    """[H*W, 2] continuous (u, v) coordinates of every pixel centre, row-major."""
+    v, u = torch.meshgrid(
+        torch.arange(height, device=device, dtype=torch.float32) + 0.5,
+        torch.arange(width, device=device, dtype=torch.float32) + 0.5,
+        indexing="ij",
+    )
+    return torch.stack([u, v], dim=-1).reshape(-1, 2)
+
+
+def ray_directions(K: torch.Tensor, world_from_cam: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Unit world-space ray directions through pixels.
+
+    Shape: K [3, 3], world_from_cam [4, 4], uv [R, 2] -> [R, 3].
+    """
+    p = torch.cat([uv, torch.ones_like(uv[:, :1])], dim=-1)
+    d_cam = p @ torch.linalg.inv(K).T
+    d = d_cam @ world_from_cam[:3, :3].T
+    return d / d.norm(dim=-1, keepdim=True)
+
+
+def _project_to_rotation(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    return R
+
+
+def sample_virtual_pose(world_from_cams: np.ndarray, rng: np.random.Generator, jitter: float = 0.1) -> np.ndarray:
+    """A random unseen camera-to-world pose near the input cameras ([4, 4]).
+
+    The centre is a random convex combination (Dirichlet(1) weights) of the input centres plus
+    isotropic Gaussian jitter of ``jitter`` times the mean distance between input centres; the
+    rotation is the same weighted mean of the input rotations, projected back onto SO(3).
+    """
+    w = rng.dirichlet(np.ones(len(world_from_cams)))
+    centers = world_from_cams[:, :3, 3]
+    baseline = mean_baseline(centers)
+    pose = np.eye(4)
+    pose[:3, :3] = _project_to_rotation(np.einsum("n,nij->ij", w, world_from_cams[:, :3, :3]))
+    pose[:3, 3] = w @ centers + rng.normal(scale=jitter * baseline, size=3)
+    return pose
+
+
+def blend_weights(ref_centers: torch.Tensor, target_center: torch.Tensor, baseline: float) -> torch.Tensor:
+    """Weights of the per-view MPIs for one target camera: nearer MPIs weigh more.
+
+    The paper's printed formula (w_i proportional to the squared distance mu_i) gives the
+    *farthest* MPI the most weight, contradicting its own text ("the closest MPI ... should have
+    a greater impact"). We follow the text with inverse squared distance:
+    ``w_i = (1 / (mu_i + eps)) / sum_j (1 / (mu_j + eps))``, ``mu_i = ||o_t - o_i||^2``,
+    ``eps = (0.1 * baseline)^2`` (plus 1e-12) so that weights stay finite and smooth at an
+    input camera, also when cameras share a centre.
+
+    Shape: ref_centers [N, 3], target_center [3] -> [N], summing to 1.
+    """
+    mu = ((ref_centers - target_center) ** 2).sum(-1)
+    inv = 1.0 / (mu + (0.1 * baseline) ** 2 + 1e-12)
+    return inv / inv.sum()
+
+
+def mean_baseline(centers: np.ndarray | torch.Tensor) -> float:
+    """Mean distance between distinct camera centres ([N, 3]); 1.0 for a single camera."""
+    c = torch.as_tensor(centers, dtype=torch.float64)
+    n = len(c)
+    if n < 2:
+        return 1.0
+    return float(torch.cdist(c, c).sum() / (n * (n - 1)))

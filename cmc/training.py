@@ -1,0 +1,222 @@
+"""Training loop: losses per step, progress hooks, cooperative cancellation, exact resume.
+
+Randomness of step ``s`` (ray choice, unseen pose) is drawn from generators seeded with
+``(seed, s)`` alone, so a run resumed from a checkpoint at step s makes exactly the draws an
+uninterrupted run makes: resuming reproduces the uninterrupted result to float tolerance.
+
+Unseen poses (for L_ac, L_dc): a random convex combination of the input camera centres plus
+Gaussian jitter (``unseen_jitter`` mean baselines), with the same weighted mean of the input
+rotations (:func:`cmc.geometry.sample_virtual_pose`), intrinsics of input view 0; rays are
+uniform random pixels of that camera.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cmc.config import TrainConfig
+from cmc.datasets import Scene, validate_scene
+from cmc.geometry import sample_virtual_pose
+from cmc.losses import appearance_consistency, depth_consistency, reconstruction_loss
+from cmc.model import CMCModel
+from cmc.rendering import render_rays
+
+CHECKPOINT_VERSION = 1
+
+
+class TrainingCancelled(Exception):
+    """Raised by :meth:`Trainer.fit` when ``should_stop`` returned True (after checkpointing)."""
+
+
+@dataclass
+class Progress:
+    """Reported to the progress hook after every step.
+
+    Attributes: step (completed steps), total, losses (name -> value of the last step),
+    elapsed_s (this process's training seconds), eta_s (estimated seconds left).
+    """
+
+    step: int
+    total: int
+    losses: dict[str, float]
+    elapsed_s: float
+    eta_s: float
+
+
+@dataclass
+class TrainResult:
+    model: CMCModel
+    steps: int
+    seconds: float
+    history: list[dict[str, float]] = field(default_factory=list)
+
+
+def lr_at(cfg: TrainConfig, step: int) -> float:
+    """Exponential decay from ``cfg.lr`` at step 0 to ``cfg.lr_final`` at the last step."""
+    t = step / max(cfg.steps - 1, 1)
+    return cfg.lr * (cfg.lr_final / cfg.lr) ** t
+
+
+class Trainer:
+    """Trains a :class:`CMCModel` on a scene's input views.
+
+    Args:
+        scene: the N >= 2 input views.
+        cfg: training configuration.
+        device: torch device ("cpu", "cuda").
+    """
+
+    def __init__(self, scene: Scene, cfg: TrainConfig, device: str | torch.device = "cpu"):
+        validate_scene(scene, min_views=2)
+        self.scene, self.cfg = scene, cfg
+        self.device = torch.device(device)
+        torch.manual_seed(cfg.seed)
+        self.model = CMCModel(scene, cfg.model, self.device)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
+        self.images = torch.as_tensor(scene.images, device=self.device).reshape(len(scene), -1, 3)
+        self.K = torch.as_tensor(scene.cameras.K, dtype=torch.float32, device=self.device)
+        self.poses = torch.as_tensor(scene.cameras.world_from_cam, dtype=torch.float32, device=self.device)
+        self.depth_scale = scene.far - scene.near
+        self.step = 0
+
+    # -- one step ---------------------------------------------------------------------------
+
+    def _random_pixels(self, gen: torch.Generator, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """n random pixel indices and their centre coordinates [n, 2]."""
+        w, h = self.scene.cameras.width, self.scene.cameras.height
+        idx = torch.randint(0, w * h, (n,), generator=gen).to(self.device)
+        uv = torch.stack([idx % w, idx // w], -1).float() + 0.5
+        return idx, uv
+
+    def compute_losses(self, step: int) -> dict[str, torch.Tensor]:
+        """All loss terms of step ``step`` (unweighted) and their weighted sum ``total``."""
+        cfg, lc = self.cfg, self.cfg.loss
+        gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
+        rng = np.random.default_rng([cfg.seed, step])
+        fields, frames = list(self.model.fields), self.model.frames
+        full = step >= lc.recon_only_fraction * cfg.steps
+        mse, dci = [], []
+        for j in range(len(self.scene)):
+            idx, uv = self._random_pixels(gen, cfg.rays_per_view)
+            outs = [render_rays(f, fr, self.K[j], self.poses[j], uv) for f, fr in zip(fields, frames, strict=False)]
+            mse.append(reconstruction_loss(outs, self.images[j][idx]))
+            if full and lc.lambda_dc_input > 0:
+                dci.append(depth_consistency(outs, self.depth_scale))
+        zero = torch.zeros((), device=self.device)
+        losses = {"mse": torch.stack(mse).mean(), "dc_input": torch.stack(dci).mean() if dci else zero}
+        ac, dc = [], []
+        if full and (lc.lambda_ac > 0 or lc.lambda_dc > 0):
+            for _ in range(cfg.unseen_poses):
+                pose = sample_virtual_pose(self.scene.cameras.world_from_cam, rng, cfg.unseen_jitter)
+                P = torch.as_tensor(pose, dtype=torch.float32, device=self.device)
+                _, uv = self._random_pixels(gen, cfg.unseen_rays)
+                outs = [render_rays(f, fr, self.K[0], P, uv) for f, fr in zip(fields, frames, strict=False)]
+                ac.append(appearance_consistency(outs))
+                dc.append(depth_consistency(outs, self.depth_scale))
+        losses["ac"] = torch.stack(ac).mean() if ac else zero
+        losses["dc"] = torch.stack(dc).mean() if dc else zero
+        smooth = [f.smoothness() for f in fields if hasattr(f, "smoothness")]
+        losses["smooth"] = torch.stack(smooth).mean() if smooth and lc.lambda_smooth > 0 else zero
+        losses["total"] = (
+            losses["mse"]
+            + lc.lambda_dc_input * losses["dc_input"]
+            + lc.lambda_ac * losses["ac"]
+            + lc.lambda_dc * losses["dc"]
+            + lc.lambda_smooth * losses["smooth"]
+        )
+        return losses
+
+    def train_step(self) -> dict[str, float]:
+        for g in self.optimizer.param_groups:
+            g["lr"] = lr_at(self.cfg, self.step)
+        self.optimizer.zero_grad(set_to_none=True)
+        losses = self.compute_losses(self.step)
+        loss = losses["total"]
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"loss became {loss.item()} at step {self.step}")
+        loss.backward()
+        self.optimizer.step()
+        self.step += 1
+        return {k: float(v.detach()) for k, v in losses.items()}
+
+    # -- checkpoints --------------------------------------------------------------------------
+
+    def state_dict(self) -> dict:
+        return {
+            "version": CHECKPOINT_VERSION,
+            "step": self.step,
+            "config": self.cfg.to_dict(),
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+        }
+
+    def save_checkpoint(self, path: str | Path) -> None:
+        """Write atomically (temporary file, then rename), so a crash never leaves a torn file."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(path.suffix + ".tmp")
+        torch.save(self.state_dict(), tmp)
+        os.replace(tmp, path)
+
+    def load_checkpoint(self, path: str | Path) -> None:
+        ckpt = torch.load(path, map_location=self.device, weights_only=False)
+        if ckpt.get("version") != CHECKPOINT_VERSION:
+            raise ValueError(f"checkpoint {path} has version {ckpt.get('version')}, expected {CHECKPOINT_VERSION}")
+        if ckpt["config"] != self.cfg.to_dict():
+            raise ValueError(f"checkpoint {path} was written with a different training configuration")
+        self.model.load_state_dict(ckpt["model"])
+        self.optimizer.load_state_dict(ckpt["optimizer"])
+        self.step = int(ckpt["step"])
+
+    # -- loop ---------------------------------------------------------------------------------
+
+    def fit(
+        self,
+        on_progress: Callable[[Progress], None] | None = None,
+        should_stop: Callable[[], bool] | None = None,
+        checkpoint_path: str | Path | None = None,
+        resume: bool = True,
+    ) -> TrainResult:
+        """Train to ``cfg.steps``.
+
+        With ``checkpoint_path``: resume from it when it exists (and ``resume``), write it every
+        ``cfg.checkpoint_every`` steps, at the end, and before raising TrainingCancelled.
+        """
+        if checkpoint_path is not None and resume and Path(checkpoint_path).exists():
+            self.load_checkpoint(checkpoint_path)
+        start_step, t0 = self.step, time.perf_counter()
+        history = []
+        while self.step < self.cfg.steps:
+            if should_stop is not None and should_stop():
+                if checkpoint_path is not None:
+                    self.save_checkpoint(checkpoint_path)
+                raise TrainingCancelled(f"cancelled at step {self.step}")
+            losses = self.train_step()
+            history.append(losses)
+            if checkpoint_path is not None and self.step % self.cfg.checkpoint_every == 0:
+                self.save_checkpoint(checkpoint_path)
+            if on_progress is not None:
+                elapsed = time.perf_counter() - t0
+                rate = elapsed / (self.step - start_step)
+                on_progress(Progress(self.step, self.cfg.steps, losses, elapsed, rate * (self.cfg.steps - self.step)))
+        if checkpoint_path is not None:
+            self.save_checkpoint(checkpoint_path)
+        seconds = time.perf_counter() - t0
+        return TrainResult(self.model, self.step, seconds if math.isfinite(seconds) else 0.0, history)
+
+
+def load_model(checkpoint_path: str | Path, scene: Scene, device: str | torch.device = "cpu") -> CMCModel:
+    """Rebuild a trained model from a checkpoint and the scene it was trained on."""
+    ckpt = torch.load(checkpoint_path, map_location=device, weights_only=False)
+    cfg = TrainConfig.from_dict(ckpt["config"])
+    model = CMCModel(scene, cfg.model, device)
+    model.load_state_dict(ckpt["model"])
+    return model

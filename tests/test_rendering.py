@@ -1,0 +1,297 @@
+"""Tests of cmc.rendering: the fast renderer against its slow twin (outputs and gradients), compositing
+known answers, and known-answer renders of textured planes (colour, depth, warp direction, coverage)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from cmc.fields import MLPField, MLPFieldConfig, PyramidFieldConfig, PyramidPlaneField, TextureField
+from cmc.geometry import pixel_centers, plane_depths
+from cmc.rendering import MPIFrame, composite, render_image, render_rays, render_rays_reference
+
+W, H = 20, 16  # reference image size; with margin 1.5 the plane extent is 30 x 24, offset (5, 4)
+MARGIN = 1.5
+OFFSET_X, OFFSET_Y = 5, 4
+
+
+def rotation(axis, angle: float) -> np.ndarray:
+    """[3, 3] rotation by ``angle`` radians about ``axis`` (Rodrigues)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    Kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(angle) * Kx + (1 - math.cos(angle)) * Kx @ Kx
+
+
+def rigid(R: np.ndarray, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+K_REF = intrinsics(20.0, 22.0, W / 2, H / 2)
+WORLD_FROM_REF = rigid(rotation([0.3, -1.0, 0.2], 0.8), [0.5, -1.0, 2.0])
+NEAR, FAR, D = 2.0, 8.0, 4  # depths 2, 8/3, 4, 8 (uniform in disparity)
+
+
+def make_frame(dtype: torch.dtype = torch.float32, world_from_ref: np.ndarray = WORLD_FROM_REF) -> MPIFrame:
+    frame = MPIFrame.create(K_REF, world_from_ref, NEAR, FAR, D, W, H, MARGIN)
+    if dtype == torch.float32:
+        return frame
+    return MPIFrame(
+        frame.K.to(dtype),
+        frame.world_from_ref.to(dtype),
+        torch.as_tensor(plane_depths(NEAR, FAR, D), dtype=dtype),
+        W,
+        H,
+        MARGIN,
+    )
+
+
+def target_cameras() -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Target (K, world_from_tgt) pairs, relative to the reference camera."""
+    return {
+        "reference": (K_REF, WORLD_FROM_REF),
+        "moved": (
+            intrinsics(24.0, 23.0, 11.0, 7.5),
+            WORLD_FROM_REF @ rigid(rotation([1, 2, 0.5], 0.08), [0.4, -0.2, 0.3]),
+        ),
+        # Turned and moved so far that about 30 % of its image looks past the planes' extent.
+        "turned": (
+            intrinsics(24.0, 23.0, 11.0, 7.5),
+            WORLD_FROM_REF @ rigid(rotation([0.2, 1, 0], 0.4), [1.5, 0.2, 0.3]),
+        ),
+        # Inside the MPI: planes 0 and 1 (z = 2, 2.67) are behind it.
+        "between_planes": (K_REF, WORLD_FROM_REF @ rigid(np.eye(3), [0.1, 0.1, 3.0])),
+    }
+
+
+def random_pyramid(seed: int, dtype: torch.dtype) -> PyramidPlaneField:
+    torch.manual_seed(seed)
+    h, w = round(H * MARGIN), round(W * MARGIN)
+    field = PyramidPlaneField(D, h, w, PyramidFieldConfig(), torch.rand(3, h, w))
+    with torch.no_grad():
+        for p in field.parameters():
+            p.add_(0.7 * torch.randn_like(p))
+    return field.to(dtype)
+
+
+def random_mlp(seed: int, dtype: torch.dtype) -> MLPField:
+    torch.manual_seed(seed)
+    return MLPField(D, MLPFieldConfig(width=16, depth=2, pe_freqs=3)).to(dtype)
+
+
+def target_uv(dtype: torch.dtype) -> torch.Tensor:
+    """Every pixel centre of a W x H target plus random off-centre points, many far outside the image."""
+    g = torch.Generator().manual_seed(0)
+    size = torch.tensor([float(W), float(H)])
+    extra = (3 * torch.rand(60, 2, generator=g) - 1) * size
+    return torch.cat([pixel_centers(W, H), extra]).to(dtype)
+
+
+# --- fast renderer vs slow twin ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("target", list(target_cameras()))
+@pytest.mark.parametrize("kind", ["pyramid", "mlp"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_render_rays_matches_reference(target: str, kind: str, dtype: torch.dtype) -> None:
+    frame = make_frame(dtype)
+    field = (random_pyramid if kind == "pyramid" else random_mlp)(1, dtype)
+    K_t, P_t = (torch.as_tensor(a, dtype=dtype) for a in target_cameras()[target])
+    uv = target_uv(dtype)
+    params = list(field.parameters())
+    g = torch.Generator().manual_seed(2)
+    wr, wd, wa = (torch.randn(*s, generator=g, dtype=dtype) for s in ((len(uv), 3), (len(uv),), (len(uv),)))
+
+    def run(fn):
+        out = fn(field, frame, K_t, P_t, uv)
+        loss = (out.rgb * wr).sum() + (out.depth * wd).sum() + (out.acc * wa).sum()
+        return out, torch.autograd.grad(loss, params, allow_unused=True)
+
+    fast, grads_fast = run(render_rays)
+    slow, grads_slow = run(render_rays_reference)
+    assert fast.rgb.shape == (len(uv), 3) and fast.depth.shape == (len(uv),) and fast.acc.shape == (len(uv),)
+    tol = {"rtol": 0, "atol": 1e-9} if dtype == torch.float64 else {"rtol": 1e-4, "atol": 1e-4}
+    torch.testing.assert_close(fast.rgb, slow.rgb, **tol)
+    torch.testing.assert_close(fast.acc, slow.acc, **tol)
+    torch.testing.assert_close(fast.depth, slow.depth, rtol=tol["rtol"], atol=tol["atol"] * FAR)
+    # The comparison is not vacuous: some rays hit all the planes and some miss some of them.
+    assert (fast.acc > 0.99).sum() > 50
+    assert (fast.acc < 0.99).sum() > 10
+    for name, a, b in zip([n for n, _ in field.named_parameters()], grads_fast, grads_slow, strict=True):
+        assert a is not None and b is not None, name
+        message = lambda m, n=name: f"{n}: {m}"  # noqa: E731
+        torch.testing.assert_close(a, b, rtol=tol["rtol"], atol=tol["atol"] * 10, msg=message)
+    assert sum(float(a.abs().sum()) for a in grads_fast) > 0
+
+
+# --- compositing known answers -------------------------------------------------------------------
+
+
+def test_composite_single_opaque_plane() -> None:
+    g = torch.Generator().manual_seed(3)
+    rgb = torch.rand(6, 5, 3, generator=g)
+    depth = torch.linspace(1.0, 5.0, 5).expand(6, 5)
+    for k in range(5):
+        alpha = torch.zeros(6, 5)
+        alpha[:, k] = 1.0
+        alpha[:, k + 1 :] = torch.rand(6, 4 - k, generator=g)  # hidden behind plane k
+        out = composite(rgb, alpha, depth)
+        torch.testing.assert_close(out.rgb, rgb[:, k])
+        torch.testing.assert_close(out.depth, depth[:, k])
+        torch.testing.assert_close(out.acc, torch.ones(6))
+
+
+def test_composite_half_alpha() -> None:
+    rgb = torch.eye(3)[None]  # plane k is pure colour k
+    alpha = torch.tensor([[0.5, 0.5, 1.0]])
+    depth = torch.tensor([[2.0, 3.0, 6.0]])
+    out = composite(rgb, alpha, depth)
+    torch.testing.assert_close(out.rgb, torch.tensor([[0.5, 0.25, 0.25]]))
+    torch.testing.assert_close(out.depth, torch.tensor([0.5 * 2 + 0.25 * 3 + 0.25 * 6]))
+    torch.testing.assert_close(out.acc, torch.tensor([1.0]))
+    # Without the opaque back plane a quarter of the light passes through.
+    out = composite(rgb[:, :2], alpha[:, :2], depth[:, :2])
+    torch.testing.assert_close(out.rgb, torch.tensor([[0.5, 0.25, 0.0]]))
+    torch.testing.assert_close(out.acc, torch.tensor([0.75]))
+
+
+def test_composite_accumulation_identity() -> None:
+    g = torch.Generator().manual_seed(4)
+    alpha = torch.rand(10, 7, generator=g)
+    out = composite(torch.ones(10, 7, 3), alpha, torch.ones(10, 7))
+    expected = 1 - torch.prod(1 - alpha, dim=1)
+    torch.testing.assert_close(out.acc, expected)
+    torch.testing.assert_close(out.rgb, expected[:, None].expand(10, 3))  # white planes
+    torch.testing.assert_close(out.depth, expected)  # unit depth
+    empty = composite(torch.rand(2, 3, 3, generator=g), torch.zeros(2, 3), torch.ones(2, 3))
+    assert float(empty.acc.abs().max()) == 0 and float(empty.rgb.abs().max()) == 0
+
+
+# --- known-answer renders ---------------------------------------------------------------------------
+
+
+def texture(planes: dict[int, tuple[tuple[int, int, int, int], tuple[float, float, float]]]) -> torch.Tensor:
+    """[D, 4, 24, 30] RGBA: plane k opaque with colour c in plane-extent rows r0:r1, cols c0:c1; the
+    back plane is grey (and always opaque)."""
+    rgba = torch.zeros(D, 4, round(H * MARGIN), round(W * MARGIN))
+    rgba[D - 1, :3] = 0.5
+    for k, ((r0, r1, c0, c1), colour) in planes.items():
+        rgba[k, :3, r0:r1, c0:c1] = torch.tensor(colour)[:, None, None]
+        rgba[k, 3, r0:r1, c0:c1] = 1.0
+    return rgba
+
+
+def test_render_at_reference_camera_textured_rectangles() -> None:
+    """At the reference camera, image pixel (i, j) sees texel (i + 4, j + 5) of every plane."""
+    depths = plane_depths(NEAR, FAR, D)
+    # Plane 2: red rectangle over image rows 3..9, cols 4..12; plane 1: blue one over rows 7..11,
+    # cols 10..15, in front of it where they overlap.
+    red, blue = (0.9, 0.2, 0.1), (0.1, 0.2, 0.8)
+    tex = texture({2: ((3 + 4, 10 + 4, 4 + 5, 13 + 5), red), 1: ((7 + 4, 12 + 4, 10 + 5, 16 + 5), blue)})
+    out = render_image([TextureField(tex)], [make_frame()], K_REF, WORLD_FROM_REF, W, H)
+    assert out.rgb.shape == (H, W, 3) and out.depth.shape == (H, W) and out.acc.shape == (H, W)
+    exp_depth = np.full((H, W), depths[3])
+    exp_rgb = np.full((H, W, 3), 0.5)
+    exp_depth[3:10, 4:13], exp_rgb[3:10, 4:13] = depths[2], red
+    exp_depth[7:12, 10:16], exp_rgb[7:12, 10:16] = depths[1], blue
+    np.testing.assert_allclose(out.acc.numpy(), 1.0, atol=1e-5)
+    np.testing.assert_allclose(out.depth.numpy(), exp_depth, atol=1e-3)
+    np.testing.assert_allclose(out.rgb.numpy(), exp_rgb, atol=1e-4)
+
+
+@pytest.mark.parametrize(("k", "shift"), [(2, 4), (3, 2)])
+def test_sideways_target_shifts_by_disparity(k: int, shift: int) -> None:
+    """Moving the camera right by tx moves content at depth z left by fx * tx / z pixels.
+
+    fx = 20, tx = 0.8: 4 px for plane 2 (z = 4), 2 px for plane 3 (z = 8).
+    """
+    depths = plane_depths(NEAR, FAR, D)
+    assert depths[k] == pytest.approx(20.0 * 0.8 / shift)
+    rgba = torch.zeros(D, 4, round(H * MARGIN), round(W * MARGIN))
+    rgba[k] = torch.rand(4, *rgba.shape[2:], generator=torch.Generator().manual_seed(k))
+    rgba[k, 3] = 1.0
+    frame = make_frame()
+    world_from_tgt = WORLD_FROM_REF @ rigid(np.eye(3), [0.8, 0.0, 0.0])
+    K = intrinsics(20.0, 22.0, W / 2, H / 2)
+    out = render_image([TextureField(rgba)], [frame], K, world_from_tgt, W, H)
+    # Target pixel (i, j) sees reference pixel (i, j + shift), i.e. texel (i + 4, j + shift + 5).
+    expected = rgba[k, :3, OFFSET_Y : OFFSET_Y + H, OFFSET_X + shift : OFFSET_X + shift + W].permute(1, 2, 0)
+    torch.testing.assert_close(out.rgb, expected, rtol=0, atol=1e-4)
+    torch.testing.assert_close(out.depth, torch.full((H, W), float(depths[k])), rtol=0, atol=1e-4)
+    torch.testing.assert_close(out.acc, torch.ones(H, W), rtol=0, atol=1e-5)
+    # The same with an explicit stripe: reference column 12 appears at target column 12 - shift.
+    stripe = torch.zeros(D, 4, *rgba.shape[2:])
+    stripe[k, :, :, OFFSET_X + 12] = 1.0
+    out = render_image([TextureField(stripe)], [frame], K, world_from_tgt, W, H)
+    cols = torch.nonzero(out.rgb[H // 2, :, 0] > 0.5).flatten().tolist()
+    assert cols == [12 - shift]
+
+
+def test_forward_target_depth_is_target_z() -> None:
+    """Moving the camera 1 unit forward: the plane at z = 4 is at target depth 3, and it looks bigger."""
+    rgba = torch.zeros(D, 4, round(H * MARGIN), round(W * MARGIN))
+    rgba[2, 3] = 1.0
+    rgba[2, 0, :, OFFSET_X + 14] = 1.0  # a red column 4 px right of the centre (u = 14.5 vs cx = 10)
+    world_from_tgt = WORLD_FROM_REF @ rigid(np.eye(3), [0.0, 0.0, 1.0])
+    out = render_image([TextureField(rgba)], [make_frame()], K_REF, world_from_tgt, W, H)
+    torch.testing.assert_close(out.depth, torch.full((H, W), 3.0), rtol=0, atol=1e-4)
+    # u_ref - cx = 4.5 at z = 4 becomes 4.5 * 4 / 3 = 6 at z = 3: target u = 16, between columns 15 and 16.
+    row = out.rgb[H // 2, :, 0]
+    torch.testing.assert_close(row[15], row[16])
+    assert float(row[15]) > 0.3 and float(row[[13, 18]].max()) < 1e-4
+
+
+# --- render_image: MPI selection, blending, coverage -----------------------------------------------
+
+
+def test_render_image_mpi_index_and_identical_blend() -> None:
+    fa, fb = random_pyramid(5, torch.float32), random_pyramid(6, torch.float32)
+    frame_a = make_frame()
+    frame_b = make_frame(world_from_ref=WORLD_FROM_REF @ rigid(rotation([0, 1, 0], 0.1), [0.7, 0.0, 0.0]))
+    K, pose = target_cameras()["turned"]
+    single_a = render_image([fa], [frame_a], K, pose, W, H)
+    single_b = render_image([fb], [frame_b], K, pose, W, H)
+    assert float(single_a.acc.min()) < 0.5 < float(single_a.acc.max())  # partial coverage: a real check
+    for index, single in ((0, single_a), (1, single_b)):
+        picked = render_image([fa, fb], [frame_a, frame_b], K, pose, W, H, mpi_index=index)
+        for name in ("rgb", "depth", "acc"):
+            torch.testing.assert_close(getattr(picked, name), getattr(single, name), rtol=0, atol=1e-6)
+    # The two MPIs differ, so blending them differs from either one.
+    both = render_image([fa, fb], [frame_a, frame_b], K, pose, W, H)
+    assert float((both.rgb - single_a.rgb).abs().max()) > 1e-2
+    # Two identical MPIs blend into the same image as one of them.
+    twice = render_image([fa, fa], [frame_a, frame_a], K, pose, W, H, chunk=37)
+    for name in ("rgb", "depth", "acc"):
+        torch.testing.assert_close(getattr(twice, name), getattr(single_a, name), rtol=0, atol=1e-5)
+
+
+def test_render_image_identical_blend_at_reference_camera() -> None:
+    field, frame = random_pyramid(5, torch.float32), make_frame()
+    single = render_image([field], [frame], K_REF, WORLD_FROM_REF, W, H)
+    twice = render_image([field, field], [frame, frame], K_REF, WORLD_FROM_REF, W, H)
+    torch.testing.assert_close(twice.rgb, single.rgb, rtol=0, atol=1e-5)
+
+
+def test_render_image_coverage_zero_outside_planes() -> None:
+    """A target at the reference camera with a 3x wider image: only the plane extent is covered."""
+    tex = texture({})
+    K = intrinsics(20.0, 22.0, W / 2 + W, H / 2)  # target column j looks at reference u = j + 0.5 - 20
+    out = render_image([TextureField(tex)], [make_frame()], K, WORLD_FROM_REF, 3 * W, H)
+    inside = torch.zeros(H, 3 * W, dtype=torch.bool)
+    inside[:, W - OFFSET_X : 2 * W + OFFSET_X] = True  # reference u in [-5, 25]: the extent
+    torch.testing.assert_close(out.acc, inside.float(), rtol=0, atol=1e-5)
+    assert float(out.rgb[~inside].abs().max()) == 0 and float(out.depth[~inside].abs().max()) == 0
+    torch.testing.assert_close(out.rgb[inside], torch.full((int(inside.sum()), 3), 0.5), rtol=0, atol=1e-5)
+    # Looking backwards from the reference camera nothing is in front: no coverage at all.
+    back = WORLD_FROM_REF @ rigid(rotation([0, 1, 0], math.pi), [0, 0, 0])
+    out = render_image([TextureField(tex)], [make_frame()], K_REF, back, W, H)
+    assert float(out.acc.abs().max()) == 0 and float(out.rgb.abs().max()) == 0
