@@ -92,6 +92,8 @@ class PyramidFieldConfig:
 
     scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane RGBA residual levels
     base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
+    stereo_init: bool = True  # start alpha from plane-sweep photo-consistency (cmc.planesweep)
+    stereo_temperature: float = 0.05  # softmin temperature of that prior (mean abs colour difference)
 
 
 class PyramidPlaneField(MPIField):
@@ -105,9 +107,19 @@ class PyramidPlaneField(MPIField):
         height, width: plane extent in reference-image pixels (image size times margin).
         cfg: level scales.
         init_rgb: [3, h, w] initial base colour in [0, 1] (the reference photo, padded).
+        init_alpha: optional [D, h0, w0] initial alpha of each plane (any size; resampled to the
+            finest level). Without it alpha starts at 1 / (D - k): equal composite weights.
     """
 
-    def __init__(self, num_planes: int, height: int, width: int, cfg: PyramidFieldConfig, init_rgb: torch.Tensor):
+    def __init__(
+        self,
+        num_planes: int,
+        height: int,
+        width: int,
+        cfg: PyramidFieldConfig,
+        init_rgb: torch.Tensor,
+        init_alpha: torch.Tensor | None = None,
+    ):
         super().__init__()
         self.num_planes = num_planes
         self.cfg = cfg
@@ -123,7 +135,10 @@ class PyramidPlaneField(MPIField):
         self.levels = nn.ParameterList()
         for n, s in enumerate(cfg.scales):
             lvl = torch.zeros(num_planes, 4, *size(s))
-            if n == len(cfg.scales) - 1:
+            if init_alpha is not None and n == 0:
+                a = F.interpolate(init_alpha[:, None].float(), size=size(s), mode="bilinear", align_corners=False)
+                lvl[:, 3] = torch.logit(a[:, 0].clamp(0.01, 0.99))
+            elif init_alpha is None and n == len(cfg.scales) - 1:
                 lvl[:, 3] = alpha0[:, None, None]
             self.levels.append(nn.Parameter(lvl))
 
@@ -149,6 +164,9 @@ class TextureField(MPIField):
         super().__init__()
         self.num_planes = rgba.shape[0]
         self.register_buffer("rgba", rgba)
+        # Premultiplied copy, back plane opaque, for whole-image rendering (render_texture_image).
+        alpha = _opaque_back(rgba[:, 3].transpose(0, -1)).transpose(0, -1)[:, None]
+        self.register_buffer("premultiplied", torch.cat([rgba[:, :3] * alpha, alpha], 1))
 
     def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
         s = F.grid_sample(self.rgba, g.permute(1, 0, 2)[:, None], align_corners=False)[:, :, 0]  # [D, 4, R]

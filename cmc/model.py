@@ -10,6 +10,7 @@ from torch import nn
 from cmc.config import ModelConfig
 from cmc.datasets import Scene
 from cmc.fields import MLPField, MPIField, PyramidPlaneField
+from cmc.planesweep import alpha_from_weights, plane_sweep_weights
 from cmc.rendering import ImageOutput, MPIFrame, render_image
 
 
@@ -55,13 +56,18 @@ class CMCModel(nn.Module):
             for i in range(len(scene))
         ]
         fields: list[MPIField] = []
+        images = torch.as_tensor(scene.images, device=device).permute(0, 3, 1, 2)
         for i, fr in enumerate(self.frames):
             if cfg.field_type == "mlp":
                 fields.append(MLPField(cfg.num_planes, cfg.mlp))
             elif cfg.field_type == "pyramid":
-                fields.append(
-                    PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, padded_reference(scene.images[i], fr))
-                )
+                init_alpha = None
+                if cfg.pyramid.stereo_init:
+                    h, w = (max(2, round(e * cfg.pyramid.scales[0])) for e in fr.extent)
+                    probs = plane_sweep_weights(self.frames, images, i, h, w, cfg.pyramid.stereo_temperature)
+                    init_alpha = alpha_from_weights(probs)
+                rgb = padded_reference(scene.images[i], fr)
+                fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha))
             else:
                 raise ValueError(f"unknown field type {cfg.field_type!r}")
         self.fields = nn.ModuleList(fields).to(device)

@@ -19,7 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from cmc.fields import MPIField
+import torch.nn.functional as F
+
+from cmc.fields import MPIField, TextureField
 from cmc.geometry import (
     apply_homography,
     blend_weights,
@@ -122,20 +124,43 @@ def render_rays(
 
     Shape: K_tgt [3, 3], world_from_tgt [4, 4], uv [R, 2] target pixel coordinates.
     """
-    H = homographies_ref_from_tgt(frame.K, frame.ref_from_world, K_tgt, world_from_tgt, frame.depths)
-    uv_ref, in_front = apply_homography(H, uv)  # [R, D, 2], [R, D]
-    g = frame.grid_from_pixels(uv_ref)
-    inside = in_front & (g.abs() <= 1).all(-1)
-    # Ray directions in the reference frame, and the target depth of every plane crossing.
-    ref_from_tgt = frame.ref_from_world @ world_from_tgt
-    d_tgt = torch.cat([uv, torch.ones_like(uv[:, :1])], -1) @ torch.linalg.inv(K_tgt).T  # [R, 3], z = 1
-    d_ref = d_tgt @ ref_from_tgt[:3, :3].T
-    # Plane z_ref = z: point o + lam * d_ref with (o + lam d_ref)_z = z; lam is target depth.
-    lam = (frame.depths[None] - ref_from_tgt[2, 3]) / d_ref[:, 2:3]  # [R, D]
-    dirs = d_ref / d_ref.norm(dim=-1, keepdim=True)
-    rgb, alpha = field(g.clamp(-1.5, 1.5), frame.plane_z, dirs)
-    alpha = alpha * inside
-    return composite(rgb, alpha, torch.where(inside, lam, torch.zeros_like(lam)))
+    return render_ray_groups(field, frame, [(K_tgt, world_from_tgt, uv)])[0]
+
+
+def render_ray_groups(
+    field: MPIField, frame: MPIFrame, groups: Sequence[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+) -> list[RayOutput]:
+    """Render rays of several target cameras from one MPI with a single field query.
+
+    One query instead of one per camera matters for explicit fields, whose backward pass
+    touches every texture once per query.
+
+    Args:
+        groups: (K_tgt [3, 3], world_from_tgt [4, 4], uv [R_g, 2]) per target camera.
+    Returns:
+        one RayOutput per group.
+    """
+    gs, lams, insides, dirss = [], [], [], []
+    for K_tgt, world_from_tgt, uv in groups:
+        H = homographies_ref_from_tgt(frame.K, frame.ref_from_world, K_tgt, world_from_tgt, frame.depths)
+        uv_ref, in_front = apply_homography(H, uv)  # [R, D, 2], [R, D]
+        g = frame.grid_from_pixels(uv_ref)
+        insides.append(in_front & (g.abs() <= 1).all(-1))
+        gs.append(g.clamp(-1.5, 1.5))
+        # Ray directions in the reference frame, and the target depth of every plane crossing:
+        # the point o + lam * d_ref (d_ref has target z = 1) lies on plane z_ref = depth.
+        ref_from_tgt = frame.ref_from_world @ world_from_tgt
+        d_tgt = torch.cat([uv, torch.ones_like(uv[:, :1])], -1) @ torch.linalg.inv(K_tgt).T
+        d_ref = d_tgt @ ref_from_tgt[:3, :3].T
+        lams.append((frame.depths[None] - ref_from_tgt[2, 3]) / d_ref[:, 2:3])  # [R, D]
+        dirss.append(d_ref / d_ref.norm(dim=-1, keepdim=True))
+    rgb, alpha = field(torch.cat(gs), frame.plane_z, torch.cat(dirss))
+    outs, start = [], 0
+    for inside, lam in zip(insides, lams, strict=True):
+        sl = slice(start, start + len(lam))
+        start += len(lam)
+        outs.append(composite(rgb[sl], alpha[sl] * inside, torch.where(inside, lam, torch.zeros_like(lam))))
+    return outs
 
 
 def render_rays_reference(
@@ -190,14 +215,60 @@ class ImageOutput:
 
 def blend(outputs: Sequence[RayOutput], weights: torch.Tensor) -> RayOutput:
     """Blend per-MPI renders of the same rays: per-camera weights [N] times each MPI's coverage,
-    renormalised per ray, so an MPI whose planes do not reach a ray does not darken it."""
-    w = torch.stack([o.acc for o in outputs], 0) * weights[:, None]  # [N, R]
-    total = w.sum(0)
-    wn = w / total.clamp_min(1e-8)
-    rgb = sum(wn[i, :, None] * (o.rgb / o.acc.clamp_min(1e-8)[:, None]) for i, o in enumerate(outputs))
-    depth = sum(wn[i] * (o.depth / o.acc.clamp_min(1e-8)) for i, o in enumerate(outputs))
-    acc = torch.stack([o.acc for o in outputs], 0).max(0).values
-    return RayOutput(rgb * acc[:, None], depth, acc)  # type: ignore[arg-type]
+    renormalised per ray, so an MPI whose planes do not reach a ray does not darken it.
+
+    With coverage a_i and premultiplied colour C_i, the blended colour is
+    ``sum_i w_i C_i / sum_i w_i a_i`` (times the largest coverage), depth likewise; depth is 0
+    where no MPI covers the ray (coverage < 1e-3).
+    """
+    acc_all = torch.stack([o.acc for o in outputs], 0)  # [N, R]
+    total = (acc_all * weights[:, None]).sum(0).clamp_min(1e-8)
+    rgb = sum(weights[i] * o.rgb for i, o in enumerate(outputs)) / total[:, None]
+    depth = sum(weights[i] * o.depth for i, o in enumerate(outputs)) / total
+    acc = acc_all.max(0).values
+    depth = torch.where(acc > 1e-3, depth, torch.zeros_like(depth))  # type: ignore[arg-type]
+    return RayOutput(rgb * acc[:, None], depth, acc)  # type: ignore[operator]
+
+
+def render_texture_image(
+    rgba_premult: torch.Tensor,
+    frame: MPIFrame,
+    K_tgt: torch.Tensor,
+    world_from_tgt: torch.Tensor,
+    width: int,
+    height: int,
+) -> RayOutput:
+    """Whole-image render of fixed textures: one warp of every plane, then compositing.
+
+    The fast path for baked MPIs (no per-ray bookkeeping). Textures are premultiplied, so
+    sampling outside a plane (zero padding) is simply transparent.
+
+    Shape: rgba_premult [D, 4, h, w] (rgb * alpha, alpha); K_tgt [3, 3]; world_from_tgt [4, 4].
+    Returns a RayOutput over the H * W pixels in row-major order.
+    """
+    dev = rgba_premult.device
+    H = homographies_ref_from_tgt(frame.K, frame.ref_from_world, K_tgt, world_from_tgt, frame.depths)  # [D, 3, 3]
+    # Fold reference pixels -> plane grid coordinates into the homographies.
+    m = frame.margin
+    N = torch.tensor([[2 / (frame.width * m), 0, -1 / m], [0, 2 / (frame.height * m), -1 / m], [0, 0, 1]], device=dev)
+    G = N @ H
+    uv = pixel_centers(width, height, dev)
+    p = torch.cat([uv, torch.ones_like(uv[:, :1])], -1)  # [P, 3]
+    q = torch.einsum("dij,pj->dpi", G, p)
+    w = q[..., 2:3]
+    grid = torch.where(w > 1e-6, q[..., :2] / w.clamp_min(1e-6), torch.full_like(q[..., :2], 4.0))
+    s = F.grid_sample(rgba_premult, grid.reshape(-1, height, width, 2), align_corners=False)  # [D, 4, H, W]
+    alpha = s[:, 3]
+    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:1]), 1 - alpha[:-1]]), 0)
+    rgb = torch.einsum("dhw,dchw->chw", trans, s[:, :3])
+    wts = trans * alpha  # [D, H, W]
+    acc = wts.sum(0)
+    # Target depth of plane k at pixel p is (z_k - t_z) / dz(p), dz the ray's reference z-component.
+    ref_from_tgt = frame.ref_from_world @ world_from_tgt
+    dz = p @ (ref_from_tgt[2, :3] @ torch.linalg.inv(K_tgt))  # [P]
+    zsum = torch.einsum("d,dp->p", frame.depths, wts.reshape(len(wts), -1))
+    depth = (zsum - acc.reshape(-1) * ref_from_tgt[2, 3]) / dz
+    return RayOutput(rgb.reshape(3, -1).T, depth, acc.reshape(-1))
 
 
 @torch.no_grad()
@@ -230,9 +301,13 @@ def render_image(
         weights = torch.ones(len(frames), device=device)
         use = [mpi_index]
     parts = []
-    for s in range(0, len(uv), chunk):
-        outs = [render_rays(fields[i], frames[i], K_t, P_t, uv[s : s + chunk]) for i in use]
+    if all(isinstance(fields[i], TextureField) for i in use):
+        outs = [render_texture_image(fields[i].premultiplied, frames[i], K_t, P_t, width, height) for i in use]
         parts.append(blend(outs, weights[use]))
+    else:
+        for s in range(0, len(uv), chunk):
+            outs = [render_rays(fields[i], frames[i], K_t, P_t, uv[s : s + chunk]) for i in use]
+            parts.append(blend(outs, weights[use]))
     rgb = torch.cat([p.rgb for p in parts]).reshape(height, width, 3)
     depth = torch.cat([p.depth for p in parts]).reshape(height, width)
     acc = torch.cat([p.acc for p in parts]).reshape(height, width)

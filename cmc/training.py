@@ -27,7 +27,7 @@ from cmc.datasets import Scene, validate_scene
 from cmc.geometry import sample_virtual_pose
 from cmc.losses import appearance_consistency, depth_consistency, reconstruction_loss
 from cmc.model import CMCModel
-from cmc.rendering import render_rays
+from cmc.rendering import render_ray_groups
 
 CHECKPOINT_VERSION = 1
 
@@ -80,7 +80,7 @@ class Trainer:
         self.device = torch.device(device)
         torch.manual_seed(cfg.seed)
         self.model = CMCModel(scene, cfg.model, self.device)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, fused=True)
         self.images = torch.as_tensor(scene.images, device=self.device).reshape(len(scene), -1, 3)
         self.K = torch.as_tensor(scene.cameras.K, dtype=torch.float32, device=self.device)
         self.poses = torch.as_tensor(scene.cameras.world_from_cam, dtype=torch.float32, device=self.device)
@@ -103,28 +103,30 @@ class Trainer:
         rng = np.random.default_rng([cfg.seed, step])
         fields, frames = list(self.model.fields), self.model.frames
         full = step >= lc.recon_only_fraction * cfg.steps
-        mse, dci = [], []
+        # Target cameras of this step: every input view, then the unseen poses.
+        groups, targets = [], []
         for j in range(len(self.scene)):
             idx, uv = self._random_pixels(gen, cfg.rays_per_view)
-            outs = [render_rays(f, fr, self.K[j], self.poses[j], uv) for f, fr in zip(fields, frames, strict=False)]
-            mse.append(reconstruction_loss(outs, self.images[j][idx]))
-            if full and lc.lambda_dc_input > 0:
-                dci.append(depth_consistency(outs, self.depth_scale))
+            groups.append((self.K[j], self.poses[j], uv))
+            targets.append(self.images[j][idx])
+        use_unseen = full and (lc.lambda_ac > 0 or lc.lambda_dc > 0)
+        for _ in range(cfg.unseen_poses if use_unseen else 0):
+            pose = sample_virtual_pose(self.scene.cameras.world_from_cam, rng, cfg.unseen_jitter)
+            P = torch.as_tensor(pose, dtype=torch.float32, device=self.device)
+            groups.append((self.K[0], P, self._random_pixels(gen, cfg.unseen_rays)[1]))
+        # per_mpi[i][t]: MPI i's render of target t (one field query per MPI).
+        per_mpi = [render_ray_groups(f, fr, groups) for f, fr in zip(fields, frames, strict=True)]
+        by_target = list(zip(*per_mpi, strict=True))
+        n = len(self.scene)
         zero = torch.zeros((), device=self.device)
-        losses = {"mse": torch.stack(mse).mean(), "dc_input": torch.stack(dci).mean() if dci else zero}
-        ac, dc = [], []
-        if full and (lc.lambda_ac > 0 or lc.lambda_dc > 0):
-            for _ in range(cfg.unseen_poses):
-                pose = sample_virtual_pose(self.scene.cameras.world_from_cam, rng, cfg.unseen_jitter)
-                P = torch.as_tensor(pose, dtype=torch.float32, device=self.device)
-                _, uv = self._random_pixels(gen, cfg.unseen_rays)
-                outs = [render_rays(f, fr, self.K[0], P, uv) for f, fr in zip(fields, frames, strict=False)]
-                ac.append(appearance_consistency(outs))
-                dc.append(depth_consistency(outs, self.depth_scale))
-        losses["ac"] = torch.stack(ac).mean() if ac else zero
-        losses["dc"] = torch.stack(dc).mean() if dc else zero
-        smooth = [f.smoothness() for f in fields if hasattr(f, "smoothness")]
-        losses["smooth"] = torch.stack(smooth).mean() if smooth and lc.lambda_smooth > 0 else zero
+        losses = {"mse": torch.stack([reconstruction_loss(by_target[j], targets[j]) for j in range(n)]).mean()}
+        dci = [depth_consistency(by_target[j], self.depth_scale) for j in range(n)] if full else []
+        losses["dc_input"] = torch.stack(dci).mean() if dci and lc.lambda_dc_input > 0 else zero
+        unseen = by_target[n:]
+        losses["ac"] = torch.stack([appearance_consistency(o) for o in unseen]).mean() if unseen else zero
+        losses["dc"] = torch.stack([depth_consistency(o, self.depth_scale) for o in unseen]).mean() if unseen else zero
+        smooth = [f.smoothness() for f in fields if hasattr(f, "smoothness")] if lc.lambda_smooth > 0 else []
+        losses["smooth"] = torch.stack(smooth).mean() if smooth else zero
         losses["total"] = (
             losses["mse"]
             + lc.lambda_dc_input * losses["dc_input"]

@@ -33,8 +33,8 @@ def test_baked_render_matches_field_render_at_input_views(trained, tmp_path):
         K, pose = scene.cameras.K[i], scene.cameras.world_from_cam[i]
         a, b = model.render(K, pose, W, H), baked.render(K, pose)
         assert psnr(a.rgb.numpy(), b.rgb.numpy()) >= 35
-        rel = ((a.depth - b.depth).abs() / a.depth).max().item()
-        assert rel < 0.02
+        rel = (a.depth - b.depth).abs() / a.depth
+        assert rel.median().item() < 0.005 and rel.quantile(0.99).item() < 0.02
 
 
 def test_manifest_describes_the_atlases(trained, tmp_path):

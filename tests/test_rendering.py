@@ -282,15 +282,18 @@ def test_render_image_identical_blend_at_reference_camera() -> None:
 
 
 def test_render_image_coverage_zero_outside_planes() -> None:
-    """A target at the reference camera with a 3x wider image: only the plane extent is covered."""
+    """A target at the reference camera with a 3x wider image: only the plane extent is covered,
+    both through the whole-image path of fixed textures and the ray path of a pyramid field."""
     tex = texture({})
     K = intrinsics(20.0, 22.0, W / 2 + W, H / 2)  # target column j looks at reference u = j + 0.5 - 20
-    out = render_image([TextureField(tex)], [make_frame()], K, WORLD_FROM_REF, 3 * W, H)
     inside = torch.zeros(H, 3 * W, dtype=torch.bool)
     inside[:, W - OFFSET_X : 2 * W + OFFSET_X] = True  # reference u in [-5, 25]: the extent
+    out = render_image([TextureField(tex)], [make_frame()], K, WORLD_FROM_REF, 3 * W, H)
     torch.testing.assert_close(out.acc, inside.float(), rtol=0, atol=1e-5)
-    assert float(out.rgb[~inside].abs().max()) == 0 and float(out.depth[~inside].abs().max()) == 0
+    assert float(out.rgb[~inside].abs().max()) < 1e-5 and float(out.depth[~inside].abs().max()) < 1e-5
     torch.testing.assert_close(out.rgb[inside], torch.full((int(inside.sum()), 3), 0.5), rtol=0, atol=1e-5)
+    hard = render_image([random_pyramid(3, torch.float32)], [make_frame()], K, WORLD_FROM_REF, 3 * W, H)
+    torch.testing.assert_close(hard.acc, inside.float(), rtol=0, atol=1e-5)
     # Looking backwards from the reference camera nothing is in front: no coverage at all.
     back = WORLD_FROM_REF @ rigid(rotation([0, 1, 0], math.pi), [0, 0, 0])
     out = render_image([TextureField(tex)], [make_frame()], K_REF, back, W, H)

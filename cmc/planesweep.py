@@ -1,0 +1,81 @@
+"""Plane-sweep stereo over an MPI's planes: a photo-consistency prior to initialise alpha.
+
+For MPI i and plane k, every texel of the plane extent is a 3D point; it is projected into the
+other input views with the plane-induced homography, and the colour found there is compared
+with the reference photo. Planes on which the views agree are likely surfaces. The ``fast``
+preset starts its alpha from this (``PyramidFieldConfig.stereo_init``), so training refines a
+plausible geometry instead of discovering one from uniform fog.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from cmc.geometry import homographies_ref_from_tgt
+
+
+def texel_pixels(frame, height: int, width: int) -> torch.Tensor:
+    """[height * width, 2] reference pixel coordinates of a texel grid over the plane extent."""
+    dev = frame.K.device
+    ys = (torch.arange(height, device=dev, dtype=torch.float32) + 0.5) / height * 2 - 1
+    xs = (torch.arange(width, device=dev, dtype=torch.float32) + 0.5) / width * 2 - 1
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    return frame.pixels_from_grid(torch.stack([gx, gy], -1).reshape(-1, 2))
+
+
+def sample_image(image: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bilinear colours of image [3, H, W] at pixel coordinates uv [..., 2] -> ([..., 3], inside [...])."""
+    H, W = image.shape[-2:]
+    g = uv / uv.new_tensor([W, H]) * 2 - 1
+    inside = (g.abs() <= 1).all(-1)
+    flat = g.reshape(1, 1, -1, 2)
+    c = F.grid_sample(image[None], flat, align_corners=False, padding_mode="border")[0, :, 0]
+    return c.T.reshape(*uv.shape[:-1], 3), inside
+
+
+@torch.no_grad()
+def plane_sweep_weights(
+    frames: list, images: torch.Tensor, ref: int, height: int, width: int, temperature: float = 0.05, window: int = 5
+) -> torch.Tensor:
+    """Per-texel probability that each plane of MPI ``ref`` holds the visible surface.
+
+    Args:
+        frames: the MPIFrames of all views; images: [N, 3, H, W] in [0, 1].
+        height, width: texel grid over the plane extent.
+        temperature: softmin temperature on the mean absolute colour difference.
+        window: box filter (texels) applied to the cost before the softmin.
+    Returns:
+        [D, height, width] probabilities summing to 1 over planes.
+    """
+    fr = frames[ref]
+    uv_ref = texel_pixels(fr, height, width)  # [T, 2]
+    ref_rgb, _ = sample_image(images[ref], uv_ref)
+    D = fr.depths.shape[0]
+    cost = torch.zeros(D, height * width, device=uv_ref.device)
+    count = torch.zeros_like(cost)
+    for j, other in enumerate(frames):
+        if j == ref:
+            continue
+        # Homographies taking view-j pixels to reference pixels for the reference planes; invert.
+        H_ref_from_j = homographies_ref_from_tgt(fr.K, fr.ref_from_world, other.K, other.world_from_ref, fr.depths)
+        H_j_from_ref = torch.linalg.inv(H_ref_from_j)  # [D, 3, 3]
+        p = torch.cat([uv_ref, torch.ones_like(uv_ref[:, :1])], -1)
+        q = torch.einsum("dij,tj->dti", H_j_from_ref, p)
+        uv_j = q[..., :2] / q[..., 2:3].clamp_min(1e-6)
+        rgb_j, inside = sample_image(images[j], uv_j)  # [D, T, 3]
+        inside = inside & (q[..., 2] > 0)
+        cost += inside * (rgb_j - ref_rgb).abs().mean(-1)
+        count += inside
+    mean_cost = cost / count.clamp_min(1)
+    # Texels no other view sees carry no evidence: give them a flat cost.
+    mean_cost = torch.where(count > 0, mean_cost, mean_cost.new_tensor(0.5))
+    c = mean_cost.reshape(D, 1, height, width)
+    c = F.avg_pool2d(c, window, stride=1, padding=window // 2, count_include_pad=False)[:, 0]
+    return torch.softmax(-c / temperature, dim=0)
+
+
+def alpha_from_weights(weights: torch.Tensor, lo: float = 0.01, hi: float = 0.99) -> torch.Tensor:
+    """Alphas whose front-to-back composite has the given per-plane weights ([D, ...])."""
+    remaining = 1 - torch.cumsum(weights, 0) + weights  # transmittance before each plane
+    return (weights / remaining.clamp_min(1e-6)).clamp(lo, hi)

@@ -1,0 +1,104 @@
+"""The ``cmc`` command line on tiny scene folders: train -> bake -> render, and clean errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cmc.cameras import CameraFile, save_camera_file
+from cmc.cli import main
+from cmc.datasets import load_image, save_scene_folder, synthetic_scene
+
+
+@pytest.fixture()
+def scene_dir(tmp_path):
+    return save_scene_folder(synthetic_scene(num_views=3, width=48, height=36), tmp_path / "scene")
+
+
+def test_train_then_render(scene_dir, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["train", str(scene_dir), "--out", str(out), "--steps", "6", "--device", "cpu"]) == 0
+    assert (out / "checkpoint.pt").exists() and (out / "baked" / "mpi.json").exists()
+    info = json.loads((out / "train.json").read_text())
+    assert info["steps"] == 6 and info["config"]["preset"] == "fast"
+    # Running again resumes at the final checkpoint: nothing left to train.
+    assert main(["train", str(scene_dir), "--out", str(out), "--steps", "6", "--device", "cpu"]) == 0
+    assert json.loads((out / "train.json").read_text())["steps"] == 6
+    renders = tmp_path / "renders"
+    assert (
+        main(["render", str(out / "baked"), "--cameras", str(scene_dir / "cameras.json"), "--out", str(renders)]) == 0
+    )
+    img = load_image(renders / "view000.png")
+    assert img.shape == (36, 48, 3)
+    depth = np.load(renders / "view000_depth.npy")
+    assert depth.shape == (36, 48) and np.isfinite(depth).all() and (depth > 0).all()
+
+
+def _expect_error(argv, capsys, *needles):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    for n in needles:
+        assert n in err, err
+
+
+def test_missing_cameras_file(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    _expect_error(["train", str(tmp_path / "empty"), "--out", str(tmp_path / "o")], capsys, "cameras file not found")
+
+
+def test_images_of_different_sizes(scene_dir, tmp_path, capsys):
+    from PIL import Image
+
+    Image.new("RGB", (40, 30)).save(scene_dir / "view001.png")
+    _expect_error(["train", str(scene_dir), "--out", str(tmp_path / "o")], capsys, "different sizes")
+
+
+def test_one_view_is_not_enough(tmp_path, capsys):
+    d = save_scene_folder(synthetic_scene(num_views=3, width=32, height=24).subset([0]), tmp_path / "one")
+    _expect_error(["train", str(d), "--out", str(tmp_path / "o")], capsys, "at least 2 views")
+
+
+@pytest.mark.parametrize(
+    "edit, needle",
+    [
+        (lambda d: d["frames"][1]["transform_matrix"][0].__setitem__(3, float("nan")), "NaN"),
+        (lambda d: [f.update(near=9.0, far=1.0) for f in d["frames"]], "near < far"),
+        (lambda d: d["frames"][0].pop("transform_matrix"), "transform_matrix"),
+        (lambda d: d.update(convention="directx"), "unknown pose convention"),
+    ],
+)
+def test_malformed_cameras(scene_dir, tmp_path, capsys, edit, needle):
+    path = scene_dir / "cameras.json"
+    data = json.loads(path.read_text())
+    edit(data)
+    path.write_text(json.dumps(data))
+    _expect_error(["train", str(scene_dir), "--out", str(tmp_path / "o")], capsys, needle)
+
+
+def test_cameras_without_bounds(scene_dir, tmp_path, capsys):
+    from cmc.cameras import load_camera_file
+
+    cf = load_camera_file(scene_dir / "cameras.json")
+    save_camera_file(CameraFile(cf.cameras, cf.file_paths, None), scene_dir / "cameras.json")
+    _expect_error(["train", str(scene_dir), "--out", str(tmp_path / "o")], capsys, "no near/far")
+
+
+def test_render_needs_a_baked_folder(tmp_path, capsys):
+    _expect_error(["render", str(tmp_path), "--cameras", "x.json", "--out", str(tmp_path / "r")], capsys, "mpi.json")
+
+
+def test_bench_needs_lpips_weights(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("CMC_LPIPS_DIR", raising=False)
+    _expect_error(["bench", "llff", "--data", str(tmp_path), "--out", str(tmp_path / "r.json")], capsys, "LPIPS")
+
+
+def test_demo_runs_end_to_end(tmp_path):
+    from cmc.demo import run_demo
+
+    summary = run_demo(tmp_path / "demo", steps=40, width=64, height=48)
+    for name in ("novel_view.png", "novel_depth.png", "novel_depth.npy", "orbit.gif", "baked/mpi.json"):
+        assert (tmp_path / "demo" / name).exists(), name
+    assert summary["novel_view_psnr_db"] > 20
