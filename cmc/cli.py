@@ -18,6 +18,7 @@ from cmc.baking import BakedFormatError, BakedScene, bake
 from cmc.cameras import CameraError, load_camera_file
 from cmc.config import PRESETS, preset_config
 from cmc.datasets import SceneError, load_scene_folder, save_image
+from cmc.poses import register_cli
 from cmc.training import Progress, Trainer, TrainingCancelled
 
 
@@ -185,6 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
     d.add_argument("--steps", type=int, default=300, help="training steps (default 300)")
     d.set_defaults(func=cmd_demo)
+    register_cli(sub)
     return p
 
 
