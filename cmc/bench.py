@@ -67,39 +67,48 @@ def bench_scene(
 ) -> dict[str, Any]:
     """Train, bake and evaluate one LLFF scene; returns its record."""
     split = load_llff(scene_dir)
+    t0 = time.perf_counter()  # training time includes building the model (plane sweep)
     trainer = Trainer(split.train, cfg, device)
-    if device.type == "cuda":
-        torch.cuda.synchronize()
-    t0 = time.perf_counter()
     trainer.fit(on_progress=on_progress)
     if device.type == "cuda":
         torch.cuda.synchronize()
     train_s = time.perf_counter() - t0
+    record: dict[str, Any] = {"scene": scene_dir.name, "train_views": split.train_ids, "test_views": split.test_ids}
     with tempfile.TemporaryDirectory() as tmp:
-        baked_dir = bake(trainer.model, save_dir / "baked" if save_dir else Path(tmp) / "baked")
-        baked = BakedScene.load(baked_dir, device)
-        per_view, times = [], []
-        test = split.test
-        for k in range(len(test)):
-            K, pose = test.cameras.K[k], test.cameras.world_from_cam[k]
-            for _ in range(render_repeats):
-                t = time.perf_counter()
-                out = baked.render(K, pose)
-                if device.type == "cuda":
-                    torch.cuda.synchronize()
-                times.append(time.perf_counter() - t)
-            pred = out.rgb.cpu().numpy()
-            m = image_metrics(pred, test.images[k], lpips_dir)
-            per_view.append({"view": split.test_ids[k], **m})
-            if save_dir:
-                save_image(save_dir / f"test_{split.test_ids[k]:03d}.png", pred)
+        for merge in (1, 2):  # all planes, then adjacent planes merged in pairs (faster renders)
+            out_dir = (save_dir or Path(tmp)) / ("baked" if merge == 1 else f"baked_merge{merge}")
+            baked = BakedScene.load(bake(trainer.model, out_dir, merge=merge), device)
+            scores = _score_baked(baked, split, device, lpips_dir, render_repeats, save_dir if merge == 1 else None)
+            if merge == 1:
+                record.update(scores)
+            else:
+                record[f"merge{merge}"] = {k: scores[k] for k in (*METRICS, "render_ms_median")}
+    record["train_seconds"] = train_s
+    return record
+
+
+def _score_baked(
+    baked: BakedScene, split, device: torch.device, lpips_dir: str | None, repeats: int, save_dir: Path | None
+) -> dict[str, Any]:
+    """Render every held-out view ``repeats`` times; mean metrics and the median render time."""
+    per_view, times = [], []
+    test = split.test
+    for k in range(len(test)):
+        K, pose = test.cameras.K[k], test.cameras.world_from_cam[k]
+        for _ in range(repeats):
+            t = time.perf_counter()
+            out = baked.render(K, pose)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            times.append(time.perf_counter() - t)
+        pred = out.rgb.cpu().numpy()
+        per_view.append({"view": split.test_ids[k], **image_metrics(pred, test.images[k], lpips_dir)})
+        if save_dir:
+            save_image(save_dir / f"test_{split.test_ids[k]:03d}.png", pred)
     return {
-        "scene": scene_dir.name,
-        "train_views": split.train_ids,
-        "test_views": split.test_ids,
         **{k: float(np.mean([v[k] for v in per_view])) for k in METRICS},
-        "train_seconds": train_s,
         "render_ms_median": 1000 * statistics.median(times),
+        "num_planes_baked": len(baked.frames[0].depths),
         "views": per_view,
     }
 
@@ -139,14 +148,18 @@ def run_llff_bench(
 
 def markdown_table(report: dict[str, Any]) -> str:
     """The report as a markdown table (one row per scene, then the mean)."""
-    head = "| scene | PSNR | SSIM | LPIPS-alex | LPIPS-vgg | train s | render ms |\n|---|---|---|---|---|---|---|\n"
-    row = "| {} | {:.2f} | {:.3f} | {:.3f} | {:.3f} | {:.0f} | {:.0f} |\n"
-    rows = [
-        row.format(r["scene"], *(r[k] for k in (*METRICS, "train_seconds", "render_ms_median")))
-        for r in report["scenes"]
-    ]
+    head = (
+        "| scene | PSNR | SSIM | LPIPS-alex | LPIPS-vgg | train s | render ms "
+        "| merged x2: PSNR / SSIM / LPIPS-alex / render ms |\n|---|---|---|---|---|---|---|---|\n"
+    )
+    row = "| {} | {:.2f} | {:.3f} | {:.3f} | {:.3f} | {:.0f} | {:.0f} | {} |\n"
+    rows = []
+    for r in report["scenes"]:
+        m2 = r["merge2"]
+        merged = f"{m2['psnr']:.2f} / {m2['ssim']:.3f} / {m2['lpips_alex']:.3f} / {m2['render_ms_median']:.0f}"
+        rows.append(row.format(r["scene"], *(r[k] for k in (*METRICS, "train_seconds", "render_ms_median")), merged))
     m = report["mean"]
-    rows.append(row.format("**mean**", *(m[k] for k in (*METRICS, "train_seconds", "render_ms_median"))))
+    rows.append(row.format("**mean**", *(m[k] for k in (*METRICS, "train_seconds", "render_ms_median")), ""))
     return head + "".join(rows)
 
 

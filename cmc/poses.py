@@ -818,6 +818,62 @@ def poses_from_client(
         )
 
 
+# --- Aligning two reconstructions ------------------------------------------------------------
+
+
+def _nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation closest to the 3x3 matrix ``M`` in the Frobenius norm (SVD, det +1)."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt
+
+
+def similarity_from_cameras(
+    src_world_from_cam: np.ndarray, dst_world_from_cam: np.ndarray
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """The similarity ``X_dst = scale * R @ X_src + t`` that best maps cameras ``src`` onto ``dst``.
+
+    Made for few cameras (2-5 photos, where the centres alone leave the rotation ill-determined):
+
+    * rotation: the chordal mean of the per-camera estimates ``R_dst_i @ R_src_i.T`` (the camera
+      orientations alone fix it), projected to SO(3);
+    * scale: ratio of the RMS distances of the centres from their centroids (needs >= 2 distinct
+      centres; does not depend on the rotation);
+    * translation: maps the centroid of the ``src`` centres onto that of the ``dst`` centres.
+
+    Exact when ``dst`` is a similarity of ``src``. Args: [N, 4, 4] camera-to-world poses of the
+    same N cameras in the two reconstructions. Returns: (scale, R [3, 3], t [3]).
+    """
+    src, dst = np.asarray(src_world_from_cam, np.float64), np.asarray(dst_world_from_cam, np.float64)
+    if src.shape != dst.shape or src.ndim != 3 or src.shape[1:] != (4, 4):
+        raise ValueError(f"need two [N, 4, 4] pose arrays of the same N, got {src.shape} and {dst.shape}")
+    R = _nearest_rotation(np.einsum("nij,nkj->ik", dst[:, :3, :3], src[:, :3, :3]))
+    c_src, c_dst = src[:, :3, 3], dst[:, :3, 3]
+    m_src, m_dst = c_src.mean(0), c_dst.mean(0)
+    spread_src = np.sqrt(((c_src - m_src) ** 2).sum(1).mean())
+    if spread_src < 1e-12:
+        raise ValueError("the source camera centres coincide: the scale is undetermined")
+    scale = float(np.sqrt(((c_dst - m_dst) ** 2).sum(1).mean()) / spread_src)
+    return scale, R, m_dst - scale * R @ m_src
+
+
+def apply_similarity_to_poses(world_from_cam: np.ndarray, scale: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Camera-to-world poses [..., 4, 4] expressed in the world ``X' = scale * R @ X + t``.
+
+    The camera's orientation turns by ``R`` only and its centre maps like any point; the camera's
+    own units are unchanged (depths along its axis scale by ``scale``). Stays rigid.
+    """
+    pose = np.array(world_from_cam, dtype=np.float64, copy=True)
+    pose[..., :3, :3] = R @ pose[..., :3, :3]
+    pose[..., :3, 3] = scale * pose[..., :3, 3] @ R.T + t
+    return pose
+
+
+def invert_similarity(scale: float, R: np.ndarray, t: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """The similarity undoing ``X' = scale * R @ X + t``: ``X = (1/scale) * R.T @ X' - R.T @ t / scale``."""
+    return 1.0 / scale, R.T, -(R.T @ t) / scale
+
+
 # --- CLI -------------------------------------------------------------------------------------
 
 

@@ -236,38 +236,59 @@ def render_texture_image(
     world_from_tgt: torch.Tensor,
     width: int,
     height: int,
+    plane_chunk: int = 8,
 ) -> RayOutput:
     """Whole-image render of fixed textures: one warp of every plane, then compositing.
 
-    The fast path for baked MPIs (no per-ray bookkeeping). Textures are premultiplied, so
-    sampling outside a plane (zero padding) is simply transparent.
+    The fast path for baked MPIs. Textures are premultiplied, so sampling outside a plane (zero
+    padding) is simply transparent. The homography of plane k (depth z_k) is written as
+    ``G_k = A + b c^T / (z_k - t_z)`` (A, b, c shared by all planes; G includes the map from
+    reference pixels to plane grid coordinates), so the D warps cost a few broadcasts; the
+    composite uses the inclusive transmittance ``T_k = prod_{j<=k} (1 - a_j)``:
+    colour ``C_0 + sum_{k>=1} T_{k-1} C_k``, coverage ``1 - T_{D-1}``, and depth
+    ``sum_k (T_{k-1} - T_k) lam_k`` with lam_k = (z_k - t_z) / dz(p) the target depth.
 
     Shape: rgba_premult [D, 4, h, w] (rgb * alpha, alpha); K_tgt [3, 3]; world_from_tgt [4, 4].
     Returns a RayOutput over the H * W pixels in row-major order.
     """
-    dev = rgba_premult.device
-    H = homographies_ref_from_tgt(frame.K, frame.ref_from_world, K_tgt, world_from_tgt, frame.depths)  # [D, 3, 3]
-    # Fold reference pixels -> plane grid coordinates into the homographies.
+    dev, dt = rgba_premult.device, rgba_premult.dtype
     m = frame.margin
-    N = torch.tensor([[2 / (frame.width * m), 0, -1 / m], [0, 2 / (frame.height * m), -1 / m], [0, 0, 1]], device=dev)
-    G = N @ H
+    N = torch.tensor(
+        [[2 / (frame.width * m), 0, -1 / m], [0, 2 / (frame.height * m), -1 / m], [0, 0, 1]], device=dev, dtype=dt
+    )
+    ref_from_tgt = frame.ref_from_world @ world_from_tgt
+    R, t = ref_from_tgt[:3, :3], ref_from_tgt[:3, 3]
+    K_inv = torch.linalg.inv(K_tgt)
+    A = N @ frame.K @ R @ K_inv
+    b = N @ frame.K @ t
+    c = K_inv.T @ R[2]  # n_t^T K^-1 p with n_t = R^T e_z
     uv = pixel_centers(width, height, dev)
     p = torch.cat([uv, torch.ones_like(uv[:, :1])], -1)  # [P, 3]
-    q = torch.einsum("dij,pj->dpi", G, p)
-    w = q[..., 2:3]
-    grid = torch.where(w > 1e-6, q[..., :2] / w.clamp_min(1e-6), torch.full_like(q[..., :2], 4.0))
-    s = F.grid_sample(rgba_premult, grid.reshape(-1, height, width, 2), align_corners=False)  # [D, 4, H, W]
-    alpha = s[:, 3]
-    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:1]), 1 - alpha[:-1]]), 0)
-    rgb = torch.einsum("dhw,dchw->chw", trans, s[:, :3])
-    wts = trans * alpha  # [D, H, W]
-    acc = wts.sum(0)
-    # Target depth of plane k at pixel p is (z_k - t_z) / dz(p), dz the ray's reference z-component.
-    ref_from_tgt = frame.ref_from_world @ world_from_tgt
-    dz = p @ (ref_from_tgt[2, :3] @ torch.linalg.inv(K_tgt))  # [P]
-    zsum = torch.einsum("d,dp->p", frame.depths, wts.reshape(len(wts), -1))
-    depth = (zsum - acc.reshape(-1) * ref_from_tgt[2, 3]) / dz
-    return RayOutput(rgb.reshape(3, -1).T, depth, acc.reshape(-1))
+    Ap = p @ A.T  # [P, 3]
+    cp = p @ c  # [P]: also dz(p), the reference z-component of the ray with target z = 1
+    z = frame.depths
+    inv_d = (1.0 / (z - t[2]))[:, None]  # [D, 1]
+    rgb = torch.zeros(3, len(p), device=dev, dtype=dt)
+    T_prev = torch.ones(len(p), device=dev, dtype=dt)  # transmittance in front of the chunk
+    zsum = torch.zeros_like(T_prev)  # sum_k (T_{k-1} - T_k) z_k
+    # Planes in chunks keep the working set in cache (one [chunk, 4, P] sample at a time).
+    for k0 in range(0, len(z), plane_chunk):
+        sl = slice(k0, k0 + plane_chunk)
+        den = Ap[:, 2] + inv_d[sl] * (cp * b[2])
+        den = torch.where(den > 1e-6, den, torch.full_like(den, 1e-12))  # behind the target: far outside
+        gx = (Ap[:, 0] + inv_d[sl] * (cp * b[0])) / den
+        gy = (Ap[:, 1] + inv_d[sl] * (cp * b[1])) / den
+        grid = torch.stack([gx, gy], -1).reshape(-1, height, width, 2)
+        s = F.grid_sample(rgba_premult[sl], grid, align_corners=False).reshape(len(den), 4, -1)  # [C, 4, P]
+        T = torch.cumprod(1 - s[:, 3], 0) * T_prev  # inclusive transmittance of the chunk's planes
+        for k in range(len(T)):
+            rgb.addcmul_(T_prev if k == 0 else T[k - 1], s[k, :3])
+        zc = z[sl]
+        zsum += zc[0] * T_prev + (zc[1:] - zc[:-1]) @ T[:-1] - T[-1] * zc[-1]
+        T_prev = T[-1]
+    acc = 1 - T_prev
+    depth = (zsum - acc * t[2]) / cp
+    return RayOutput(rgb.T, depth, acc)
 
 
 @torch.no_grad()

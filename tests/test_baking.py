@@ -54,3 +54,18 @@ def test_missing_or_foreign_folders_are_refused(tmp_path):
     (tmp_path / "mpi.json").write_text(json.dumps({"format": "other", "version": 7}))
     with pytest.raises(BakedFormatError, match="expected cmc-mpi v1"):
         BakedScene.load(tmp_path)
+
+
+def test_merged_planes_are_exact_at_the_reference_view(trained, tmp_path):
+    """Merging adjacent planes composites them in the reference camera: its render is unchanged
+    (up to 8-bit storage), there are half as many planes, and depths stay in range."""
+    scene, model = trained
+    full = BakedScene.load(bake(model, tmp_path / "full"))
+    merged = BakedScene.load(bake(model, tmp_path / "merged", merge=2))
+    assert len(merged.frames[0].depths) == 5
+    assert merged.frames[0].depths[0] >= full.frames[0].depths[0]
+    assert merged.frames[0].depths[-1] <= full.frames[0].depths[-1]
+    K, pose = scene.cameras.K[0], scene.cameras.world_from_cam[0]
+    a = full.render(K, pose, min_weight=0.99)  # the reference MPI alone
+    b = merged.render(K, pose, min_weight=0.99)
+    assert psnr(a.rgb.numpy(), b.rgb.numpy()) >= 40
