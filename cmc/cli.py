@@ -68,7 +68,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     finally:
         signal.signal(signal.SIGINT, previous)
         bar.close()
-    baked = bake(trainer.model, out / "baked", scale=args.bake_scale)
+    baked = bake(trainer.model, out / "baked", scale=args.bake_scale, merge=args.bake_merge)
     (out / "train.json").write_text(
         json.dumps(
             {"steps": result.steps, "seconds_this_run": result.seconds, "config": cfg.to_dict(), "baked": str(baked)},
@@ -120,7 +120,9 @@ def cmd_bench(args: argparse.Namespace) -> None:
         bar: dict[str, ProgressBar] = {}
 
         def hook(scene: str, p: Progress, bar=bar, suffix=suffix, steps=cfg.steps) -> None:
-            bar.setdefault(scene, ProgressBar(f"{scene}{suffix}", steps))(p)
+            if scene not in bar:
+                bar[scene] = ProgressBar(f"{scene}{suffix}", steps)
+            bar[scene](p)
 
         save = Path(args.save_dir) / (args.preset + suffix) if args.save_dir else None
         report = run_llff_bench(Path(args.data), args.scenes.split(","), cfg, device, lpips_dir, save, hook)
@@ -162,6 +164,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--out", required=True, help="output folder: checkpoint.pt, baked/, train.json")
     t.add_argument("--restart", action="store_true", help="ignore an existing checkpoint instead of resuming")
     t.add_argument("--bake-scale", type=float, default=1.0, help="baked texture resolution factor")
+    t.add_argument(
+        "--bake-merge",
+        type=int,
+        default=1,
+        help="composite this many adjacent planes into one when baking (faster renders)",
+    )
     train_opts(t)
     t.set_defaults(func=cmd_train)
 

@@ -7,7 +7,6 @@ conventions of :mod:`cmc.cameras`; images are float32 [H, W, 3] in [0, 1].
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -280,9 +279,3 @@ def synthetic_scene(
     zs = [L.z for L in layers]
     nf = np.tile([0.8 * min(zs), 1.1 * max(zs)], (num_views, 1))
     return Scene(images, cams, nf, [f"view{i:03d}" for i in range(num_views)], depths)
-
-
-def scene_summary(scene: Scene) -> str:
-    """One-line JSON description (sizes, bounds) for logs."""
-    n, h, w, _ = scene.images.shape
-    return json.dumps({"views": n, "width": w, "height": h, "near": scene.near, "far": scene.far})

@@ -172,8 +172,3 @@ class TextureField(MPIField):
         s = F.grid_sample(self.rgba, g.permute(1, 0, 2)[:, None], align_corners=False)[:, :, 0]  # [D, 4, R]
         s = s.permute(2, 0, 1)
         return s[..., :3], _opaque_back(s[..., 3])
-
-
-def field_param_count(field: nn.Module) -> int:
-    """Number of trainable scalars."""
-    return sum(p.numel() for p in field.parameters() if p.requires_grad)

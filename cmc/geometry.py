@@ -75,17 +75,6 @@ def pixel_centers(width: int, height: int, device: torch.device | str = "cpu") -
     return torch.stack([u, v], dim=-1).reshape(-1, 2)
 
 
-def ray_directions(K: torch.Tensor, world_from_cam: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """Unit world-space ray directions through pixels.
-
-    Shape: K [3, 3], world_from_cam [4, 4], uv [R, 2] -> [R, 3].
-    """
-    p = torch.cat([uv, torch.ones_like(uv[:, :1])], dim=-1)
-    d_cam = p @ torch.linalg.inv(K).T
-    d = d_cam @ world_from_cam[:3, :3].T
-    return d / d.norm(dim=-1, keepdim=True)
-
-
 def _project_to_rotation(M: np.ndarray) -> np.ndarray:
     U, _, Vt = np.linalg.svd(M)
     R = U @ Vt

@@ -127,7 +127,10 @@ def render_rays(
 
 
 def render_ray_groups(
-    field: MPIField, frame: MPIFrame, groups: Sequence[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+    field: MPIField,
+    frame: MPIFrame,
+    groups: Sequence[tuple[torch.Tensor, torch.Tensor, torch.Tensor]],
+    color_grad: Sequence[bool] | None = None,
 ) -> list[RayOutput]:
     """Render rays of several target cameras from one MPI with a single field query.
 
@@ -136,6 +139,8 @@ def render_ray_groups(
 
     Args:
         groups: (K_tgt [3, 3], world_from_tgt [4, 4], uv [R_g, 2]) per target camera.
+        color_grad: per group, whether gradients flow to the field's colours (default all);
+            where False, only alpha (the geometry) receives the group's gradients.
     Returns:
         one RayOutput per group.
     """
@@ -155,10 +160,11 @@ def render_ray_groups(
         dirss.append(d_ref / d_ref.norm(dim=-1, keepdim=True))
     rgb, alpha = field(torch.cat(gs), frame.plane_z, torch.cat(dirss))
     outs, start = [], 0
-    for inside, lam in zip(insides, lams, strict=True):
+    for g, (inside, lam) in enumerate(zip(insides, lams, strict=True)):
         sl = slice(start, start + len(lam))
         start += len(lam)
-        outs.append(composite(rgb[sl], alpha[sl] * inside, torch.where(inside, lam, torch.zeros_like(lam))))
+        rgb_g = rgb[sl] if color_grad is None or color_grad[g] else rgb[sl].detach()
+        outs.append(composite(rgb_g, alpha[sl] * inside, torch.where(inside, lam, torch.zeros_like(lam))))
     return outs
 
 

@@ -115,13 +115,18 @@ class Trainer:
             P = torch.as_tensor(pose, dtype=torch.float32, device=self.device)
             groups.append((self.K[0], P, self._random_pixels(gen, cfg.unseen_rays)[1]))
         # per_mpi[i][t]: MPI i's render of target t (one field query per MPI).
-        per_mpi = [render_ray_groups(f, fr, groups) for f, fr in zip(fields, frames, strict=True)]
+        color_grad = [True] * len(self.scene) + [not lc.ac_geometry_only] * (len(groups) - len(self.scene))
+        per_mpi = [render_ray_groups(f, fr, groups, color_grad) for f, fr in zip(fields, frames, strict=True)]
         by_target = list(zip(*per_mpi, strict=True))
         n = len(self.scene)
         zero = torch.zeros((), device=self.device)
         losses = {"mse": torch.stack([reconstruction_loss(by_target[j], targets[j]) for j in range(n)]).mean()}
-        dci = [depth_consistency(by_target[j], self.depth_scale) for j in range(n)] if full else []
-        losses["dc_input"] = torch.stack(dci).mean() if dci and lc.lambda_dc_input > 0 else zero
+        if full and lc.lambda_dc_input > 0:
+            losses["dc_input"] = torch.stack(
+                [depth_consistency(by_target[j], self.depth_scale) for j in range(n)]
+            ).mean()
+        else:
+            losses["dc_input"] = zero
         unseen = by_target[n:]
         losses["ac"] = torch.stack([appearance_consistency(o) for o in unseen]).mean() if unseen else zero
         losses["dc"] = torch.stack([depth_consistency(o, self.depth_scale) for o in unseen]).mean() if unseen else zero

@@ -16,7 +16,6 @@ from cmc.geometry import (
     mean_baseline,
     pixel_centers,
     plane_depths,
-    ray_directions,
     sample_virtual_pose,
 )
 
@@ -227,20 +226,6 @@ def test_pixel_centers() -> None:
     uv = pixel_centers(3, 2)
     assert uv.shape == (6, 2)
     assert uv.tolist() == [[0.5, 0.5], [1.5, 0.5], [2.5, 0.5], [0.5, 1.5], [1.5, 1.5], [2.5, 1.5]]
-
-
-def test_ray_directions() -> None:
-    K = intrinsics(50.0, 60.0, 31.0, 22.0)
-    pose = rigid(rotation([1.0, 2.0, 0.5], 0.7), [1.0, 2.0, 3.0])
-    uv = torch.tensor([[31.0, 22.0], [31.0 + 50.0, 22.0 + 60.0 * 2]], dtype=torch.float64)
-    d = ray_directions(t64(K), t64(pose), uv).numpy()
-    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
-    np.testing.assert_allclose(d[0], pose[:3, 2], atol=1e-12)  # principal point: optical axis
-    cam = np.array([1.0, 2.0, 1.0]) / math.sqrt(6.0)
-    np.testing.assert_allclose(d[1], pose[:3, :3] @ cam, atol=1e-12)
-
-
-# --- virtual poses ---------------------------------------------------------------------------------
 
 
 def _input_poses() -> np.ndarray:

@@ -11,7 +11,7 @@ import torch
 
 from cmc.fields import MLPField, MLPFieldConfig, PyramidFieldConfig, PyramidPlaneField, TextureField
 from cmc.geometry import pixel_centers, plane_depths
-from cmc.rendering import MPIFrame, composite, render_image, render_rays, render_rays_reference
+from cmc.rendering import MPIFrame, composite, render_image, render_ray_groups, render_rays, render_rays_reference
 
 W, H = 20, 16  # reference image size; with margin 1.5 the plane extent is 30 x 24, offset (5, 4)
 MARGIN = 1.5
@@ -298,3 +298,21 @@ def test_render_image_coverage_zero_outside_planes() -> None:
     back = WORLD_FROM_REF @ rigid(rotation([0, 1, 0], math.pi), [0, 0, 0])
     out = render_image([TextureField(tex)], [make_frame()], K_REF, back, W, H)
     assert float(out.acc.abs().max()) == 0 and float(out.rgb.abs().max()) == 0
+
+
+def test_color_grad_false_sends_gradients_to_alpha_only() -> None:
+    """render_ray_groups(color_grad=[False]): the composite still depends on colour, but only the
+    alpha channels of the field receive gradients (used by LossConfig.ac_geometry_only)."""
+    field, frame = random_pyramid(7, torch.float32), make_frame()
+    K, pose = target_cameras()["moved"]
+    uv = target_uv(torch.float32)
+    args = (torch.as_tensor(K, dtype=torch.float32), torch.as_tensor(pose, dtype=torch.float32), uv)
+    for flag in (True, False):
+        field.zero_grad()
+        (out,) = render_ray_groups(field, frame, [args], color_grad=[flag])
+        out.rgb.sum().backward()
+        colour_grad = float(field.levels[0].grad[:, :3].abs().sum()) + float(
+            0 if field.base.grad is None else field.base.grad.abs().sum()
+        )
+        assert float(field.levels[0].grad[:, 3].abs().sum()) > 0
+        assert (colour_grad > 0) == flag
