@@ -18,8 +18,9 @@ test: install  ## the whole test suite (what CI runs)
 	$(VENV)/bin/ruff check cmc tests
 	CMC_SHARED_DIR=$(SHARED) $(VENV)/bin/python -m pytest -q
 
-bench-fern: install  ## LLFF fern, fast preset, CPU (about 10 minutes)
+bench-fern: install  ## LLFF fern, fast preset, CPU (about 5 minutes), then regenerate bench/RESULTS.md
 	CMC_LPIPS_DIR=$(SHARED)/weights $(VENV)/bin/cmc bench llff --data $(SHARED)/datasets/llff \
-		--scenes fern --preset fast --out bench/fern_fast_cpu.json
+		--scenes fern --preset fast --out bench/fern_fast_cpu.json --save-dir bench/runs
+	$(VENV)/bin/python bench/make_results.py
 
 .PHONY: install demo test bench-fern

@@ -71,8 +71,23 @@ def main() -> None:
             f"- baked render ms, planes merged in pairs: {verdict(s['merge2']['render_ms_median'], 250, True)}\n",
         ]
 
+    old = load("fern_fast800_fullloss_cpu.json")
+    if old:
+        out += [
+            "## LLFF fern, earlier `fast` preset: 800 steps, full loss (with L_ac)\n",
+            "The preset before the ablation below; kept for comparison (code: the commit named below, "
+            "whose working tree differed only in CLI progress-bar code and removed dead code).\n",
+            header(
+                old,
+                "CMC_LPIPS_DIR=../shared/weights cmc bench llff --data ../shared/datasets/llff --scenes fern "
+                "--preset fast --out bench/fern_fast_cpu.json --save-dir bench/runs  (preset: 800 steps, lambda_ac 1)",
+            ),
+            (HERE / "fern_fast800_fullloss_cpu.md").read_text(),
+            "",
+        ]
+
     rows = []
-    for name in ("mse", "mse+dcI", "mse+dcI+ac", "full"):
+    for name in ("mse", "mse+dcI", "mse+dcI+ac", "full", "full-acgeom"):
         r = load(f"fern_ablation_400-{name}.json")
         if r:
             m = r["mean"]
@@ -95,7 +110,24 @@ def main() -> None:
             "| losses | PSNR | SSIM | LPIPS-alex | LPIPS-vgg | train s |\n|---|---|---|---|---|---|",
             *rows,
             "",
+            "`full-acgeom` is the full loss with L_ac reaching alpha only (`LossConfig.ac_geometry_only`), "
+            "run by a script equivalent to `--ablation`'s full row with that flag set "
+            "(`run_llff_bench` with `replace(cfg.loss, ac_geometry_only=True)`). Train seconds in this table "
+            "were measured while other work shared the CPU at times; only the quality columns compare.\n",
         ]
+    out += [
+        "## Exploration while designing `fast` (400 steps, field renders, CPU shared)\n",
+        "Command: `PYTHONPATH=. python bench/explore_fern.py NAME OVERRIDES` (one line each; the defaults "
+        "were the preset of that moment: 32 planes, no plane-sweep init before the `stereo` rows). "
+        "Date 2026-11-22, same machine.\n",
+        "```",
+        (HERE / "exploration_fern_400steps.txt").read_text().rstrip(),
+        "```",
+        "",
+    ]
+    for name in ("poses_fern.md", "poses_e2e.md"):
+        if (HERE / name).exists():
+            out.append((HERE / name).read_text().replace("\n# ", "\n## ", 1).replace("# ", "## ", 1))
     notes = HERE / "NOTES.md"
     if notes.exists():
         out.append(notes.read_text())
