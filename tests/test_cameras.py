@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import rigid, rotation
 
 from cmc.cameras import (
     CameraError,
@@ -35,20 +36,6 @@ FERN_POSES = SHARED_DIR / "datasets" / "llff" / "fern" / "poses_bounds.npy"
 # LLFF's full-resolution iPhone X size and focal (fern), and the few-shot protocol's resolution.
 FULL_H, FULL_W, FULL_F = 3024.0, 4032.0, 3260.5
 SMALL_W, SMALL_H = 504, 378
-
-
-def rotation(axis, angle: float) -> np.ndarray:
-    """[3, 3] rotation by ``angle`` radians about ``axis`` (Rodrigues)."""
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
-    Kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(angle) * Kx + (1 - math.cos(angle)) * Kx @ Kx
-
-
-def rigid(R: np.ndarray, t) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
 
 
 def random_poses(rng: np.random.Generator, n: int) -> np.ndarray:

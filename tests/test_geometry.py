@@ -8,7 +8,9 @@ import math
 import numpy as np
 import pytest
 import torch
+from helpers import rigid, rotation
 
+from cmc.cameras import intrinsics
 from cmc.geometry import (
     apply_homography,
     blend_weights,
@@ -18,24 +20,6 @@ from cmc.geometry import (
     plane_depths,
     sample_virtual_pose,
 )
-
-
-def rotation(axis, angle: float) -> np.ndarray:
-    """[3, 3] rotation by ``angle`` radians about ``axis`` (Rodrigues)."""
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
-    Kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(angle) * Kx + (1 - math.cos(angle)) * Kx @ Kx
-
-
-def rigid(R: np.ndarray, t) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
-
-
-def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
 def random_pair(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

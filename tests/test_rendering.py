@@ -8,7 +8,9 @@ import math
 import numpy as np
 import pytest
 import torch
+from helpers import rigid, rotation
 
+from cmc.cameras import intrinsics
 from cmc.fields import MLPField, MLPFieldConfig, PyramidFieldConfig, PyramidPlaneField, TextureField
 from cmc.geometry import pixel_centers, plane_depths
 from cmc.rendering import MPIFrame, composite, render_image, render_ray_groups, render_rays, render_rays_reference
@@ -16,24 +18,6 @@ from cmc.rendering import MPIFrame, composite, render_image, render_ray_groups, 
 W, H = 20, 16  # reference image size; with margin 1.5 the plane extent is 30 x 24, offset (5, 4)
 MARGIN = 1.5
 OFFSET_X, OFFSET_Y = 5, 4
-
-
-def rotation(axis, angle: float) -> np.ndarray:
-    """[3, 3] rotation by ``angle`` radians about ``axis`` (Rodrigues)."""
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
-    Kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(angle) * Kx + (1 - math.cos(angle)) * Kx @ Kx
-
-
-def rigid(R: np.ndarray, t) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
-
-
-def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
 K_REF = intrinsics(20.0, 22.0, W / 2, H / 2)
