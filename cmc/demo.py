@@ -62,7 +62,7 @@ def run_demo(
     out.mkdir(parents=True, exist_ok=True)
     scene = synthetic_scene(num_views=3, width=width, height=height)
     save_scene_folder(scene, out / "input")
-    cfg = preset_config("fast", steps=steps, rays_per_view=4096, unseen_rays=4096)
+    cfg = preset_config("fast", steps=steps)
     trainer = Trainer(scene, cfg)
     result = trainer.fit(on_progress=on_progress, checkpoint_path=out / "checkpoint.pt")
     baked = BakedScene.load(bake(trainer.model, out / "baked"))
