@@ -1,0 +1,370 @@
+"""End-to-end check of issue 3 on an LLFF scene (fern): train from estimated poses vs dataset poses.
+
+Both runs train the same preset with the same seed on the same pixels (the dataset's ``images_8``
+PNGs of the RegNeRF training views 1, 10, 19); only the cameras differ:
+
+(a) dataset: ``poses_bounds.npy`` poses, intrinsics and scene-wide bounds, as ``load_llff`` gives them;
+(b) estimated: :func:`cmc.poses.estimate_poses` on the full-resolution JPEGs of the same three views
+    (intrinsics, poses and per-view near/far at the 504x378 working resolution, arbitrary frame).
+
+The held-out views (0, 8, 16) have dataset poses only. To render them in run (b) their poses are
+registered into the estimated frame with the similarity that aligns the three estimated training
+cameras to the dataset's (:func:`cmc.poses.similarity_from_cameras`: rotation = chordal mean of
+``R_gt_i R_est_i^T``, scale = ratio of the RMS centre spreads, translation from the centroids), then
+inverted and applied as a pose transform (centre: scaled, rotated and shifted; orientation: rotated
+only). Both runs render the test views with the dataset's intrinsics (scaled to 504x378), so the
+test cameras are the same pixel grid; run (b) is also scored with the estimated focal for reference.
+
+Usage::
+
+    nice -n 19 .venv/bin/python bench/poses_e2e.py --data ../shared/datasets/llff/fern --steps 400 \\
+        --lpips-dir ../shared/weights --out bench/poses_e2e.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from cmc.baking import BakedScene, bake
+from cmc.bench import git_commit
+from cmc.cameras import Cameras
+from cmc.config import preset_config
+from cmc.datasets import LLFFSplit, Scene, load_image, load_llff, save_image
+from cmc.geometry import mean_baseline
+from cmc.metrics import image_metrics
+from cmc.poses import (
+    PoseResult,
+    apply_similarity_to_poses,
+    estimate_poses,
+    invert_similarity,
+    similarity_from_cameras,
+)
+from cmc.training import Trainer
+
+METRICS = ("psnr", "ssim", "lpips_alex", "lpips_vgg")
+
+
+def rotation_angle_deg(A: np.ndarray, B: np.ndarray) -> float:
+    """Angle of the rotation taking A to B (both [3, 3]), degrees."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(A.T @ B) - 1) / 2, -1, 1))))
+
+
+def full_resolution_photos(data: Path, ids: list[int], num_views: int) -> list[Path]:
+    """The original photos (``images/``, sorted like ``images_8``) of the views ``ids``.
+
+    The shared fern copy holds only the photos of the training views; then ``images/`` must hold
+    exactly ``len(ids)`` photos, taken as those views in sorted order (checked against ``images_8``
+    after pose estimation, see :func:`estimated_scene`).
+    """
+    files = sorted(p for p in (data / "images").iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    if len(files) == num_views:
+        return [files[i] for i in ids]
+    if len(files) == len(ids):
+        return files
+    raise SystemExit(f"{data / 'images'} holds {len(files)} photos: need all {num_views} or the {len(ids)} train views")
+
+
+def estimated_scene(split: LLFFSplit, est: PoseResult) -> tuple[Scene, dict[str, Any]]:
+    """Training scene (b): the dataset's pixels with the estimated cameras and near/far."""
+    train = split.train
+    cams = est.camera_file.cameras
+    w, h = train.cameras.width, train.cameras.height
+    working = [load_image(p).shape[:2] for p in est.image_paths]
+    check = {
+        "working_image_size": [working[0][1], working[0][0]],
+        "estimated_intrinsics_size": [cams.width, cams.height],
+        "dataset_image_size": [w, h],
+        "intrinsics_rescaled": False,
+    }
+    if any(s != (h, w) for s in working):
+        print(f"note: estimated working images are {working}, images_8 are {h}x{w}", file=sys.stderr)
+    else:  # the photo of each view: its working image must be closest to that view's images_8 PNG
+        diff = np.array([[np.abs(load_image(p) - im).mean() for im in train.images] for p in est.image_paths])
+        check["working_vs_images_8_mean_abs_diff"] = np.diag(diff).tolist()
+        if (diff.argmin(axis=1) != np.arange(len(diff))).any():
+            raise SystemExit(f"the photos do not match the training views of images_8 (mean abs diff {diff.tolist()})")
+    if (cams.width, cams.height) != (w, h):  # same aspect ratio assumed (SfM scales K uniformly)
+        cams = cams.scaled(w, h)
+        check["intrinsics_rescaled"] = True
+    nf = np.asarray(est.camera_file.near_far, dtype=np.float64)
+    return Scene(train.images.copy(), cams, nf, list(train.names)), check
+
+
+def alignment(gt: Cameras, est: Cameras) -> dict[str, Any]:
+    """Similarity est -> gt from the training cameras, with its residuals per view."""
+    scale, R, t = similarity_from_cameras(est.world_from_cam, gt.world_from_cam)
+    aligned = apply_similarity_to_poses(est.world_from_cam, scale, R, t)
+    centre_err = np.linalg.norm(aligned[:, :3, 3] - gt.centers, axis=1)
+    rot_err = [rotation_angle_deg(a[:3, :3], g[:3, :3]) for a, g in zip(aligned, gt.world_from_cam, strict=True)]
+    baseline = mean_baseline(gt.centers)
+    return {
+        "scale_est_to_gt": scale,
+        "R_est_to_gt": R.tolist(),
+        "t_est_to_gt": t.tolist(),
+        "gt_mean_baseline": baseline,
+        "centre_error_gt_units": centre_err.tolist(),
+        "centre_error_fraction_of_baseline": (centre_err / baseline).tolist(),
+        "rotation_error_deg": rot_err,
+        "focal_px_dataset": gt.K[:, 0, 0].tolist(),
+        "focal_px_estimated": est.K[:, 0, 0].tolist(),
+        "principal_point_estimated": est.K[:, :2, 2].tolist(),
+    }
+
+
+def _rodrigues(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the axis-angle vector ``w`` (radians)."""
+    a = float(np.linalg.norm(w))
+    if a < 1e-15:
+        return np.eye(3)
+    k = w / a
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(a) * Kx + (1 - np.cos(a)) * Kx @ Kx
+
+
+def _blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur of an [H, W, C] image (reflect padding); identity for sigma 0."""
+    if sigma <= 0:
+        return img
+    r = int(3 * sigma + 0.5)
+    x = torch.arange(-r, r + 1, dtype=img.dtype)
+    g = torch.exp(-0.5 * (x / sigma) ** 2)
+    g = g / g.sum()
+    t = img.permute(2, 0, 1)[:, None]  # [C, 1, H, W]
+    t = torch.nn.functional.conv2d(torch.nn.functional.pad(t, (r, r, 0, 0), mode="reflect"), g.view(1, 1, 1, -1))
+    t = torch.nn.functional.conv2d(torch.nn.functional.pad(t, (0, 0, r, r), mode="reflect"), g.view(1, 1, -1, 1))
+    return t[:, 0].permute(1, 2, 0)
+
+
+def refine_test_pose(
+    baked: BakedScene,
+    K: np.ndarray,
+    pose: np.ndarray,
+    target: np.ndarray,
+    depth: float,
+    sigmas: tuple[float, ...] = (4.0, 2.0, 1.0, 0.0),
+    iters: int = 6,
+) -> tuple[np.ndarray, dict[str, float]]:
+    """Photometric 6-DoF refinement of one test pose against a frozen baked model (diagnostic).
+
+    Gauss-Newton / Levenberg-Marquardt on the RGB residual, coarse to fine over Gaussian blurs of
+    render and target (``sigmas`` px), with a forward-difference Jacobian. The update is applied in
+    the camera frame, ``pose @ [exp(w) | v]``, with parameters scaled to about one pixel of image
+    motion each (rotation: 1 / f radians; translation: ``depth`` / f scene units, i.e. one pixel
+    at depth ``depth``). Returns the refined pose and the size of the correction.
+    """
+    f = float(K[0, 0])
+    unit = np.array([1 / f] * 3 + [depth / f] * 3)
+    gt = torch.as_tensor(target, dtype=torch.float32)
+
+    def pose_of(p: np.ndarray) -> np.ndarray:
+        d = np.eye(4)
+        d[:3, :3], d[:3, 3] = _rodrigues(p[:3] * unit[:3]), p[3:] * unit[3:]
+        return pose @ d
+
+    def residual(p: np.ndarray, sigma: float, gt_b: torch.Tensor) -> np.ndarray:
+        rgb = baked.render(K, pose_of(p)).rgb.float().cpu()
+        return (_blur(rgb, sigma) - gt_b).reshape(-1).numpy().astype(np.float64)
+
+    p = np.zeros(6)
+    for sigma in sigmas:
+        gt_b = _blur(gt, sigma)
+        r = residual(p, sigma, gt_b)
+        lam = 1e-3
+        for _ in range(iters):
+            J = np.stack([(residual(p + 0.5 * e, sigma, gt_b) - r) / 0.5 for e in np.eye(6)], 1)
+            H, g = J.T @ J, J.T @ r
+            improved = False
+            for _ in range(4):
+                step = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), g)
+                r_new = residual(p + step, sigma, gt_b)
+                if r_new @ r_new < r @ r:
+                    p, r, lam, improved = p + step, r_new, lam * 0.3, True
+                    break
+                lam *= 10
+            if not improved or np.abs(step).max() < 0.02:
+                break
+    refined = pose_of(p)
+    rel = np.linalg.inv(pose) @ refined
+    return refined, {
+        "rotation_deg": rotation_angle_deg(np.eye(3), rel[:3, :3]),
+        "translation_scene_units": float(np.linalg.norm(rel[:3, 3])),
+        "params_px": p.tolist(),
+    }
+
+
+def train_and_score(
+    name: str,
+    scene: Scene,
+    steps: int,
+    seed: int,
+    test_images: np.ndarray,
+    test_cameras: dict[str, tuple[np.ndarray, np.ndarray]],
+    test_ids: list[int],
+    device: torch.device,
+    lpips_dir: str | None,
+    save_dir: Path | None,
+    refine: bool = False,
+) -> dict[str, Any]:
+    """Train the fast preset on ``scene``, bake, render each test camera set and score it.
+
+    With ``refine``: also score the first camera set after :func:`refine_test_pose` (label
+    ``<label>_refined``), a diagnostic separating registration error from reconstruction quality.
+    """
+    cfg = preset_config("fast", steps=steps, seed=seed)
+    print(f"[{name}] training {steps} steps, near/far {scene.near:.3f}/{scene.far:.3f}", file=sys.stderr, flush=True)
+    trainer = Trainer(scene, cfg, device)
+    t0 = time.perf_counter()
+    trainer.fit()
+    train_s = time.perf_counter() - t0
+    record: dict[str, Any] = {"train_seconds": train_s, "near": scene.near, "far": scene.far, "config": cfg.to_dict()}
+    with tempfile.TemporaryDirectory() as tmp:
+        baked_dir = bake(trainer.model, (save_dir / f"{name}_baked") if save_dir else Path(tmp) / "baked")
+        baked = BakedScene.load(baked_dir, device)
+        score_cameras(name, baked, test_cameras, test_images, test_ids, lpips_dir, save_dir, record, refine)
+    return record
+
+
+def score_cameras(
+    name: str,
+    baked: BakedScene,
+    test_cameras: dict[str, tuple[np.ndarray, np.ndarray]],
+    test_images: np.ndarray,
+    test_ids: list[int],
+    lpips_dir: str | None,
+    save_dir: Path | None,
+    record: dict[str, Any],
+    refine: bool = False,
+) -> None:
+    """Render and score every camera set of ``test_cameras`` into ``record[label]``."""
+    cams = dict(test_cameras)
+    if refine:
+        label, (Ks, poses) = next(iter(test_cameras.items()))
+        refined, corrections = [], []
+        for k in range(len(test_ids)):
+            t0 = time.perf_counter()
+            pose_k, info = refine_test_pose(baked, Ks[k], poses[k], test_images[k], baked.near)
+            refined.append(pose_k)
+            corrections.append({"view": test_ids[k], **info, "seconds": time.perf_counter() - t0})
+        cams[f"{label}_refined"] = (Ks, np.stack(refined))
+        record["refinement"] = corrections
+    for label, (Ks, poses) in cams.items():
+        views = []
+        for k, view in enumerate(test_ids):
+            pred = baked.render(Ks[k], poses[k]).rgb.cpu().numpy()
+            views.append({"view": view, **image_metrics(pred, test_images[k], lpips_dir)})
+            if save_dir is not None:
+                save_image(save_dir / f"{name}_{label}_test_{view:03d}.png", pred)
+        record[label] = {"views": views, "mean": {m: float(np.mean([v[m] for v in views])) for m in METRICS}}
+        print(f"[{name}] {label}: {record[label]['mean']}", file=sys.stderr, flush=True)
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", type=Path, default=Path("../shared/datasets/llff/fern"), help="LLFF scene folder")
+    ap.add_argument("--steps", type=int, default=600, help="training steps of the fast preset (both runs)")
+    ap.add_argument("--seed", type=int, default=0, help="training and SfM seed (both runs)")
+    ap.add_argument("--lpips-dir", default=os.environ.get("CMC_LPIPS_DIR"), help="folder with lpips_alex.pth")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--out", type=Path, default=Path("bench/poses_e2e.json"), help="JSON report")
+    ap.add_argument("--save-dir", type=Path, help="also write the rendered test views and baked models here")
+    ap.add_argument(
+        "--refine-test-poses",
+        action="store_true",
+        help="diagnostic: also score both runs after photometric refinement of the registered test poses",
+    )
+    args = ap.parse_args(argv)
+    device = torch.device(args.device)
+    if args.save_dir:
+        args.save_dir.mkdir(parents=True, exist_ok=True)
+
+    split = load_llff(args.data)
+    num_views = len(split.train_ids) + len(split.test_ids)
+    photos = full_resolution_photos(args.data, split.train_ids, num_views)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        est = estimate_poses(photos, Path(tmp) / "scene", seed=args.seed, keep_originals=False)
+        pose_wall_s = time.perf_counter() - t0
+        scene_b, size_check = estimated_scene(split, est)
+    scene_a = split.train
+
+    align = alignment(scene_a.cameras, scene_b.cameras)
+    scale, R, t = align["scale_est_to_gt"], np.array(align["R_est_to_gt"]), np.array(align["t_est_to_gt"])
+    test = split.test
+    test_pose_est = apply_similarity_to_poses(test.cameras.world_from_cam, *invert_similarity(scale, R, t))
+    K_est = np.repeat(scene_b.cameras.K.mean(0)[None], len(test), axis=0)  # one shared SfM camera
+
+    cams_a = {"dataset_K": (test.cameras.K, test.cameras.world_from_cam)}
+    cams_b = {"dataset_K": (test.cameras.K, test_pose_est), "estimated_K": (K_est, test_pose_est)}
+    common = dict(
+        steps=args.steps,
+        seed=args.seed,
+        test_images=test.images,
+        test_ids=split.test_ids,
+        device=device,
+        lpips_dir=args.lpips_dir,
+        save_dir=args.save_dir,
+        refine=args.refine_test_poses,
+    )
+    run_a = train_and_score("dataset_poses", scene_a, test_cameras=cams_a, **common)
+    run_b = train_and_score("estimated_poses", scene_b, test_cameras=cams_b, **common)
+    ma, mb = run_a["dataset_K"]["mean"], run_b["dataset_K"]["mean"]
+    diff = {m: mb[m] - ma[m] for m in METRICS}
+    report = {
+        "task": "issue 3 end-to-end: fern from estimated vs dataset poses, held-out views registered by similarity",
+        "command": " ".join([Path(sys.executable).name, *sys.argv]),
+        "data": str(args.data),
+        "train_views": split.train_ids,
+        "test_views": split.test_ids,
+        "photos": [p.name for p in photos],
+        "steps": args.steps,
+        "seed": args.seed,
+        "pose_estimation": {
+            "wall_seconds": pose_wall_s,
+            "timings": est.timings,
+            "stats": est.stats,
+            "near_far_estimated": np.asarray(est.camera_file.near_far).tolist(),
+            **size_check,
+        },
+        "bounds": {
+            "dataset_scene_near_far": [scene_a.near, scene_a.far],
+            "estimated_scene_near_far": [scene_b.near, scene_b.far],
+            "estimated_scene_near_far_in_gt_units": [scene_b.near * scale, scene_b.far * scale],
+        },
+        "alignment": align,
+        "test_poses_in_estimated_frame": test_pose_est.tolist(),
+        "runs": {"dataset_poses": run_a, "estimated_poses": run_b},
+        "difference_estimated_minus_dataset": diff,
+        "target_psnr_gap_db": 0.5,
+        "target_met": bool(ma["psnr"] - mb["psnr"] <= 0.5),
+        "device": torch.cuda.get_device_name(device)
+        if device.type == "cuda"
+        else f"cpu ({platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"{torch.get_num_threads()} torch threads)",
+        "git_commit": git_commit(),
+        "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d"),
+        "versions": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__},
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=1))
+    print(
+        f"PSNR dataset {ma['psnr']:.3f} dB, estimated {mb['psnr']:.3f} dB, difference {diff['psnr']:+.3f} dB "
+        f"(target: within 0.5 dB -> {'met' if report['target_met'] else 'NOT met'})"
+    )
+    return report
+
+
+if __name__ == "__main__":
+    main()
