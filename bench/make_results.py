@@ -159,6 +159,18 @@ def main() -> None:
             f"- estimated minus dataset: PSNR {d['psnr']:+.2f} dB, SSIM {d['ssim']:+.3f}, "
             f"LPIPS-alex {d['lpips_alex']:+.3f} (target: PSNR gap within {e2e['target_psnr_gap_db']} dB: "
             f"{'met' if e2e['target_met'] else 'missed'})\n",
+            *(
+                [
+                    "- diagnostic, held-out poses refined photometrically in both runs (see poses_e2e.md): "
+                    + ", ".join(
+                        f"{run} PSNR {e2e['runs'][run]['dataset_K_refined']['mean']['psnr']:.2f} dB"
+                        for run in ("dataset_poses", "estimated_poses")
+                    )
+                    + f", estimated minus dataset {e2e['difference_after_test_pose_refinement']['psnr']:+.2f} dB\n"
+                ]
+                if e2e.get("difference_after_test_pose_refinement")
+                else []
+            ),
             *rows,
             "",
         ]
