@@ -15,7 +15,7 @@ demo: install  ## reconstruct a synthetic scene from 3 views on the CPU; outputs
 	$(VENV)/bin/cmc demo --out demo-output
 
 test: install  ## the whole test suite (what CI runs)
-	$(VENV)/bin/ruff check cmc tests
+	$(VENV)/bin/ruff check cmc service worker tests bench
 	CMC_SHARED_DIR=$(SHARED) $(VENV)/bin/python -m pytest -q
 
 bench-fern: install  ## LLFF fern, fast preset, CPU (about 5 minutes), then regenerate bench/RESULTS.md

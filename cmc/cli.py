@@ -15,6 +15,7 @@ import torch
 from tqdm import tqdm
 
 from cmc.baking import BakedFormatError, BakedScene, bake
+from cmc.camera_paths import PATH_KINDS
 from cmc.cameras import CameraError, load_camera_file
 from cmc.config import PRESETS, preset_config
 from cmc.datasets import SceneError, load_scene_folder, save_image
@@ -79,7 +80,14 @@ def cmd_train(args: argparse.Namespace) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> None:
+    if (args.cameras is None) == (args.path is None):
+        raise ValueError("give exactly one of --cameras FILE (still views) or --path spiral|orbit|dolly (a video)")
+    if args.path is None and (args.frames is not None or args.fps is not None):
+        raise ValueError("--frames and --fps apply to --path videos only")
     baked = BakedScene.load(args.baked)
+    if args.path is not None:
+        _render_video(baked, args)
+        return
     cams = load_camera_file(args.cameras)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -93,6 +101,27 @@ def cmd_render(args: argparse.Namespace) -> None:
         np.save(out / f"{stem}_depth.npy", r.depth.numpy().astype(np.float32))
         save_image(out / f"{stem}_depth.png", depth_preview(r.depth.numpy(), baked.near, baked.far))
     print(f"rendered {len(cams.file_paths)} views to {out} (depth: float32 .npy, camera z in scene units)")
+
+
+def _render_video(baked: BakedScene, args: argparse.Namespace) -> None:
+    from cmc.video import DEFAULT_FPS, DEFAULT_FRAMES, render_path_video
+
+    frames = DEFAULT_FRAMES if args.frames is None else args.frames
+    fps = DEFAULT_FPS if args.fps is None else args.fps
+    if frames < 1:
+        raise ValueError(f"--frames must be at least 1, got {frames}")
+    if not fps > 0:
+        raise ValueError(f"--fps must be positive, got {fps}")
+    out = Path(args.out)
+    if out.is_dir():
+        out = out / f"{args.path}.mp4"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    bar = tqdm(total=frames, desc=f"render {args.path}", unit="frame", dynamic_ncols=True)
+    try:
+        render_path_video(baked, args.path, out, num_frames=frames, fps=fps, on_frame=lambda i, n: bar.update(1))
+    finally:
+        bar.close()
+    print(f"wrote {out}: {frames} frames at {fps:g} fps (H.264 MP4)")
 
 
 ABLATIONS = {
@@ -173,10 +202,16 @@ def build_parser() -> argparse.ArgumentParser:
     train_opts(t)
     t.set_defaults(func=cmd_train)
 
-    r = sub.add_parser("render", help="render colour and depth of every camera in a cameras file from a baked MPI")
+    r = sub.add_parser(
+        "render",
+        help="render a baked MPI: colour and depth of every camera in a cameras file, or a camera-path video",
+    )
     r.add_argument("baked", help="baked folder (mpi.json + atlases)")
-    r.add_argument("--cameras", required=True, help="cameras file (transforms.json shape)")
-    r.add_argument("--out", required=True, help="output folder")
+    r.add_argument("--cameras", help="cameras file (transforms.json shape): one PNG + depth per camera")
+    r.add_argument("--path", choices=PATH_KINDS, help="instead of --cameras: an H.264 MP4 along this camera path")
+    r.add_argument("--out", required=True, help="output folder (--cameras) or .mp4 file (--path)")
+    r.add_argument("--frames", type=int, help="video frames along the path (default 120)")
+    r.add_argument("--fps", type=float, help="video frames per second (default 30)")
     r.set_defaults(func=cmd_render)
 
     b = sub.add_parser("bench", help="benchmark on a dataset with the paper's protocol")
@@ -195,7 +230,18 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--steps", type=int, default=300, help="training steps (default 300)")
     d.set_defaults(func=cmd_demo)
     register_cli(sub)
+    _register_service_commands(sub)
     return p
+
+
+def _register_service_commands(sub: argparse._SubParsersAction) -> None:
+    """``cmc serve`` and ``cmc new-api-key`` live with the REST service (service/serve.py);
+    imported here only to offer them, so the library itself holds no web code."""
+    try:
+        from service.serve import register_cli as register_service_cli
+    except ImportError:  # the library installed without the service
+        return
+    register_service_cli(sub)
 
 
 def main(argv: list[str] | None = None) -> int:

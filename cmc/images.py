@@ -22,6 +22,14 @@ from PIL import ExifTags, Image, ImageOps, UnidentifiedImageError
 
 from cmc.datasets import SceneError
 
+
+class UnsupportedImageError(SceneError):
+    """The bytes are not an image of a supported format (decided by content, not name)."""
+
+
+class ImageTooLargeError(SceneError):
+    """The image has more pixels than allowed (decompression-bomb guard)."""
+
 try:  # HEIC/HEIF (iPhone default) if the optional decoder is installed
     from pillow_heif import register_heif_opener
 
@@ -73,16 +81,16 @@ def _open(path: Path, max_pixels: int) -> Image.Image:
     except IsADirectoryError:
         raise SceneError(f"{path} is a directory, not a photo") from None
     except Image.DecompressionBombError:
-        raise SceneError(f"{path.name}: image dimensions are too large (over {max_pixels} pixels)") from None
+        raise ImageTooLargeError(f"{path.name}: image dimensions are too large (over {max_pixels} pixels)") from None
     except UnidentifiedImageError:
         names = ", ".join({"WEBP": "WebP", "HEIF": "HEIC"}.get(f, f) for f in SUPPORTED_FORMATS)
-        raise SceneError(f"{path.name} is not a supported image (accepted: {names})") from None
+        raise UnsupportedImageError(f"{path.name} is not a supported image (accepted: {names})") from None
     except OSError as e:
         raise SceneError(f"cannot read {path.name}: {e}") from None
     w, h = im.size
     if w <= 0 or h <= 0 or w * h > max_pixels:
         im.close()
-        raise SceneError(f"{path.name}: {w}x{h} image is too large (limit {max_pixels} pixels)")
+        raise ImageTooLargeError(f"{path.name}: {w}x{h} image is too large (limit {max_pixels} pixels)")
     return im
 
 

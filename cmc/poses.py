@@ -650,19 +650,27 @@ def _near_far_from_reconstruction(
 # --- Client poses ----------------------------------------------------------------------------
 
 
-def _frame_order(file_paths: Sequence[str], photos: _Photos) -> list[int]:
-    """Index of the frame for each photo, matching names by file name, then by stem."""
+def match_frames(file_paths: Sequence[str], photo_names: Sequence[Sequence[str]]) -> list[int]:
+    """Index of the cameras-file frame for each photo, matching by file name, then by stem.
+
+    Args:
+        file_paths: the frames' ``file_path`` values (any folder part is ignored).
+        photo_names: per photo, the names it answers to, the file name first (e.g. the upload's
+            original name, then a sanitised alias).
+    Raises:
+        CameraError: a photo no frame names, a photo named by several frames, or frames naming no photo.
+    """
     keys = [Path(fp.replace("\\", "/")).name for fp in file_paths]
     order = []
-    for k, info in enumerate(photos.infos):
-        hits = [f for f, key in enumerate(keys) if key == info.path.name]
+    for names in photo_names:
+        hits = [f for f, key in enumerate(keys) if key == names[0]]
         if not hits:
-            stems = {info.path.stem, photos.names[k]}
+            stems = {Path(n).stem for n in names}
             hits = [f for f, key in enumerate(keys) if Path(key).stem in stems]
         if not hits:
-            raise CameraError(f"no frame in the cameras file is for photo {info.path.name} (frames: {', '.join(keys)})")
+            raise CameraError(f"no frame in the cameras file is for photo {names[0]} (frames: {', '.join(keys)})")
         if len(hits) > 1:
-            raise CameraError(f"{len(hits)} frames in the cameras file name photo {info.path.name}")
+            raise CameraError(f"{len(hits)} frames in the cameras file name photo {names[0]}")
         order.append(hits[0])
     extra = sorted(set(range(len(keys))) - set(order))
     if extra:
@@ -775,7 +783,8 @@ def poses_from_client(
     with _work_dir(work_dir) as work, _Cancel(pycolmap, should_stop) as cancel:
         with _stage(timings, "intake"):
             photos = _read_photos(image_paths, long_side, max_sift_size, max_pixels)
-            order = _frame_order(client.file_paths, photos)
+            aliases = [(info.path.name, name) for info, name in zip(photos.infos, photos.names, strict=True)]
+            order = match_frames(client.file_paths, aliases)
             client_cams = client.cameras[order]
             _check_client_sizes(client_cams, photos)
             scene_dir = _prepare_scene_dir(scene_dir)

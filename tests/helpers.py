@@ -1,10 +1,16 @@
-"""Small pose builders shared by the geometry, camera and rendering tests."""
+"""Small builders shared by the tests: poses, and synthetic scene uploads for the service."""
 
 from __future__ import annotations
 
+import io
+import json
 import math
 
 import numpy as np
+from PIL import Image
+
+from cmc.cameras import CameraFile, Cameras, camera_file_to_dict, convert_pose
+from cmc.datasets import Scene, synthetic_cameras, synthetic_scene
 
 
 def rotation(axis, angle: float) -> np.ndarray:
@@ -20,3 +26,41 @@ def rigid(R: np.ndarray, t) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
     return T
+
+
+def synthetic_upload(
+    num_views: int = 3, width: int = 96, height: int = 72, with_cameras: bool = True, steps: int = 8
+) -> tuple[list[tuple], Scene, Cameras]:
+    """A tiny synthetic scene (known poses and depths) as the multipart parts of
+    ``POST /v1/scenes``: PNG photos named ``view<i>.png``, its cameras file (OpenGL convention,
+    with near/far) and options. Returns (parts for httpx ``files=``, the scene, a novel camera
+    halfway between input views 0 and 1 for checking renders against the exact ground truth)."""
+    scene = synthetic_scene(num_views, width, height)
+    parts: list[tuple] = []
+    for i, img in enumerate(scene.images):
+        buf = io.BytesIO()
+        Image.fromarray((np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)).save(buf, "PNG")
+        parts.append(("images", (f"view{i}.png", buf.getvalue(), "image/png")))
+    if with_cameras:
+        names = [f"view{i}.png" for i in range(num_views)]
+        cams = camera_file_to_dict(CameraFile(scene.cameras, names, scene.near_far), "opengl")
+        parts.append(("cameras", ("cameras.json", json.dumps(cams).encode(), "application/json")))
+    parts.append(("options", (None, json.dumps({"steps": steps, "resolution": max(width, height)}))))
+    novel = synthetic_cameras(2 * num_views - 1, width, height)[1:2]
+    return parts, scene, novel
+
+
+def render_body(cameras: Cameras, convention: str = "opengl") -> dict:
+    """The JSON body of the render / depth endpoints for the first of ``cameras``."""
+    pose = convert_pose(cameras.world_from_cam[0], "opencv", convention)
+    K = cameras.K[0]
+    return {
+        "transform_matrix": pose.tolist(),
+        "fl_x": float(K[0, 0]),
+        "fl_y": float(K[1, 1]),
+        "cx": float(K[0, 2]),
+        "cy": float(K[1, 2]),
+        "w": cameras.width,
+        "h": cameras.height,
+        "convention": convention,
+    }

@@ -1,0 +1,480 @@
+"""The HTTP routes, versioned under ``/v1`` (thin: checks, then store / storage / renderer calls)."""
+
+from __future__ import annotations
+
+import base64
+import json
+import logging
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from fastapi import APIRouter, Depends, Header, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from service.auth import KeyRing
+from service.errors import APIError, not_found
+from service.jobs import JobQueue
+from service.metrics import Metrics
+from service.renders import (
+    BakedCache,
+    depth_scale,
+    encode_depth_npy,
+    encode_depth_png16,
+    encode_depth_preview,
+    encode_image,
+)
+from service.schemas import ErrorBody, Health, JobError, RenderCamera, SceneLinks, SceneList, SceneOptions, SceneOut
+from service.settings import Settings
+from service.storage import Storage
+from service.store import IdempotencyConflict, SceneRecord, SceneStore
+from service.uploads import check_images, parse_cameras, parse_options, receive_upload
+
+log = logging.getLogger("cmc.api")
+
+
+@dataclass
+class Services:
+    """Everything a route needs; built once per app by service.app.create_app."""
+
+    settings: Settings
+    store: SceneStore
+    storage: Storage
+    queue: JobQueue
+    keys: KeyRing
+    renders: BakedCache
+    metrics: Metrics
+
+
+def _services(request: Request) -> Services:
+    return request.app.state.services
+
+
+_bearer = HTTPBearer(auto_error=False, description="API key (not needed when the server has none configured)")
+
+
+def _owner(request: Request, _: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> str:
+    return _services(request).keys.owner(request.headers.get("authorization"))
+
+
+Svc = Annotated[Services, Depends(_services)]
+Owner = Annotated[str, Depends(_owner)]
+SceneId = Annotated[str, "scene id"]
+
+ERRORS: dict[int | str, dict[str, Any]] = {
+    code: {"model": ErrorBody, "description": text}
+    for code, text in {
+        401: "missing or unknown API key",
+        404: "no such scene (or not yours)",
+        422: "invalid request",
+    }.items()
+}
+ERRORS_READY: dict[int | str, dict[str, Any]] = {
+    **ERRORS,
+    409: {"model": ErrorBody, "description": "the scene is not ready yet (code scene_not_ready)"},
+}
+
+router = APIRouter()
+
+
+# -- helpers --------------------------------------------------------------------------------------
+
+
+def _iso(t: float | None) -> str | None:
+    return None if t is None else datetime.fromtimestamp(t, UTC).isoformat().replace("+00:00", "Z")
+
+
+def scene_out(rec: SceneRecord) -> SceneOut:
+    base = f"/v1/scenes/{rec.id}"
+    error = JobError(code=rec.error_code, message=rec.error_message or "") if rec.error_code else None
+    return SceneOut(
+        id=rec.id,
+        status=rec.status,
+        progress=round(rec.progress, 4),
+        eta_seconds=rec.eta_seconds,
+        detail=rec.detail,
+        error=error,
+        options=SceneOptions(**rec.options),
+        images=rec.upload_names,
+        created_at=_iso(rec.created_at) or "",
+        updated_at=_iso(rec.updated_at) or "",
+        started_at=_iso(rec.started_at),
+        finished_at=_iso(rec.finished_at),
+        links=SceneLinks(
+            self=base,
+            cameras=f"{base}/cameras",
+            render=f"{base}/render",
+            depth=f"{base}/depth",
+            mpi=f"{base}/mpi",
+            viewer=f"{base}/viewer",
+            video=f"{base}/video",
+        ),
+    )
+
+
+def _scene(svc: Services, scene_id: str, owner: str) -> SceneRecord:
+    rec = svc.store.get(scene_id, owner)
+    if rec is None:
+        raise not_found()
+    return rec
+
+
+def _ready_scene(svc: Services, scene_id: str, owner: str) -> SceneRecord:
+    rec = _scene(svc, scene_id, owner)
+    if rec.status != "ready":
+        raise APIError(409, "scene_not_ready", f"the scene is {rec.status}", {"status": rec.status})
+    return rec
+
+
+def negotiate(accept: str | None, offered: list[str]) -> str | None:
+    """The offered media type the Accept header prefers (q-values, type/* and */*; ties go to
+    the earlier offer), or None when it accepts none of them."""
+    if not accept:
+        return offered[0]
+    prefs = []
+    for entry in accept.split(","):
+        kind, *params = (p.strip() for p in entry.split(";"))
+        q = 1.0
+        for p in params:
+            if p.startswith("q="):
+                try:
+                    q = float(p[2:])
+                except ValueError:
+                    q = 0.0
+        prefs.append((kind.lower(), q))
+    best, best_q = None, 0.0
+    for media in offered:
+        q = max((q for kind, q in prefs if kind in (media, media.split("/")[0] + "/*", "*/*")), default=0.0)
+        if q > best_q:
+            best, best_q = media, q
+    return best
+
+
+def _camera(body: RenderCamera, settings: Settings) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """K [3, 3] and world_from_cam [4, 4] in the OpenCV convention, width, height."""
+    from cmc.cameras import CameraError, camera_file_from_dict
+
+    if body.w * body.h > settings.max_render_pixels:
+        raise APIError(422, "render_too_large", f"w * h must be at most {settings.max_render_pixels} pixels")
+    frame = body.model_dump(exclude_none=True)
+    data = {k: v for k, v in frame.items() if k != "transform_matrix"}
+    data["frames"] = [{"file_path": "render", "transform_matrix": frame["transform_matrix"]}]
+    try:
+        cams = camera_file_from_dict(data).cameras
+    except CameraError as e:
+        raise APIError(422, "invalid_camera", str(e).replace("frame 0: ", "")) from None
+    return cams.K[0], cams.world_from_cam[0], body.w, body.h
+
+
+# -- scenes ---------------------------------------------------------------------------------------
+
+_UPLOAD_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["images"],
+                    "properties": {
+                        "images": {
+                            "type": "array",
+                            "items": {"type": "string", "format": "binary"},
+                            "description": "the photos (JPEG, PNG, WebP or HEIC; detected by content)",
+                        },
+                        "cameras": {
+                            "type": "string",
+                            "format": "binary",
+                            "description": "optional transforms.json-style cameras file (skips structure from motion)",
+                        },
+                        "options": {
+                            "type": "string",
+                            "description": "optional JSON, e.g. {\"preset\": \"fast\", \"steps\": 400, "
+                            "\"resolution\": 504, \"seed\": 0} (see SceneOptions)",
+                        },
+                    },
+                }
+            }
+        },
+    }
+}
+
+
+@router.post(
+    "/v1/scenes",
+    status_code=202,
+    response_model=SceneOut,
+    summary="Upload photos and start a reconstruction",
+    openapi_extra=_UPLOAD_BODY,
+    responses={
+        **ERRORS,
+        400: {"model": ErrorBody, "description": "malformed or interrupted upload"},
+        409: {"model": ErrorBody, "description": "Idempotency-Key reused for a different upload"},
+        413: {"model": ErrorBody, "description": "request, image bytes or pixels over the limits"},
+        415: {"model": ErrorBody, "description": "not multipart, or a photo that is not a supported image"},
+        503: {"model": ErrorBody, "description": "the job queue is unavailable; retry"},
+    },
+)
+async def create_scene(
+    request: Request,
+    svc: Svc,
+    owner: Owner,
+    idempotency_key: Annotated[
+        str | None,
+        Header(alias="Idempotency-Key", max_length=200, description="retries with the same key make one scene"),
+    ] = None,
+) -> Response:
+    import uuid
+
+    scene_id = uuid.uuid4().hex
+    s = svc.settings
+    try:
+        upload = await receive_upload(request, s, svc.storage, scene_id)
+        if idempotency_key:
+            existing = await run_in_threadpool(svc.store.find_by_idempotency_key, owner, idempotency_key)
+            if existing is not None:
+                if existing.request_digest != upload.digest:
+                    raise APIError(409, "idempotency_conflict", "this Idempotency-Key was used for a different upload")
+                svc.storage.delete_scene(scene_id)
+                return _created(existing, replayed=True)
+        stored = await run_in_threadpool(check_images, upload, s)
+        options = parse_options(upload, s)
+        cameras = await run_in_threadpool(parse_cameras, upload, stored)
+        if cameras is not None:
+            svc.storage.write_bytes(f"{scene_id}/uploads/cameras.json", json.dumps(cameras).encode())
+        rec, created = await run_in_threadpool(
+            lambda: svc.store.create(
+                owner,
+                options.model_dump(),
+                [p.filename for p in upload.images],
+                stored,
+                cameras is not None,
+                idempotency_key,
+                upload.digest,
+                scene_id,
+            )
+        )
+    except IdempotencyConflict as e:
+        svc.storage.delete_scene(scene_id)
+        raise APIError(409, "idempotency_conflict", str(e)) from None
+    except BaseException:
+        svc.storage.delete_scene(scene_id)
+        raise
+    if not created:  # a concurrent retry with the same key won the race
+        svc.storage.delete_scene(scene_id)
+        return _created(rec, replayed=True)
+    try:
+        svc.queue.submit(rec.id, "poses")
+    except Exception:
+        log.exception("could not queue scene %s", rec.id)
+        svc.store.purge(rec.id)
+        svc.storage.delete_scene(rec.id)
+        raise APIError(503, "queue_unavailable", "the job queue is unavailable; retry shortly") from None
+    return _created(rec, replayed=False)
+
+
+def _created(rec: SceneRecord, replayed: bool) -> Response:
+    headers = {"Location": f"/v1/scenes/{rec.id}"}
+    if replayed:
+        headers["Idempotent-Replayed"] = "true"
+    return JSONResponse(scene_out(rec).model_dump(mode="json"), status_code=202, headers=headers)
+
+
+@router.get("/v1/scenes/{scene_id}", response_model=SceneOut, responses=ERRORS, summary="Job status of a scene")
+def get_scene(scene_id: SceneId, svc: Svc, owner: Owner) -> SceneOut:
+    return scene_out(_scene(svc, scene_id, owner))
+
+
+def _cursor(rec: SceneRecord) -> str:
+    return base64.urlsafe_b64encode(json.dumps([rec.created_at, rec.id]).encode()).decode()
+
+
+@router.get("/v1/scenes", response_model=SceneList, responses=ERRORS, summary="Your scenes, newest first")
+def list_scenes(
+    svc: Svc,
+    owner: Owner,
+    limit: Annotated[int, Query(ge=1, le=100)] = 20,
+    cursor: Annotated[str | None, Query(description="next_cursor of the previous page")] = None,
+) -> SceneList:
+    before = None
+    if cursor:
+        try:
+            t, i = json.loads(base64.urlsafe_b64decode(cursor.encode()))
+            before = (float(t), str(i))
+        except Exception:
+            raise APIError(422, "invalid_cursor", "cursor is not one this API returned") from None
+    recs = svc.store.list(owner, limit + 1, before)
+    page = recs[:limit]
+    return SceneList(items=[scene_out(r) for r in page], next_cursor=_cursor(page[-1]) if len(recs) > limit else None)
+
+
+@router.delete(
+    "/v1/scenes/{scene_id}",
+    status_code=204,
+    responses=ERRORS,
+    summary="Cancel the job (within seconds) and delete the scene and all its data",
+)
+def delete_scene(scene_id: SceneId, svc: Svc, owner: Owner) -> Response:
+    _scene(svc, scene_id, owner)
+    svc.store.delete(scene_id)
+    svc.renders.evict(scene_id)
+    svc.storage.delete_scene(scene_id)
+    return Response(status_code=204)
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/cameras",
+    responses={**ERRORS_READY, 200: {"description": "transforms.json-style cameras file"}},
+    summary="Estimated intrinsics, poses and near/far, in the upload's cameras format",
+)
+def get_cameras(
+    scene_id: SceneId,
+    svc: Svc,
+    owner: Owner,
+    convention: Literal["opengl", "opencv"] = "opengl",
+) -> dict:
+    from cmc.cameras import CameraFile, camera_file_to_dict, load_camera_file
+
+    rec = _scene(svc, scene_id, owner)
+    path = svc.storage.path(f"{scene_id}/scene/cameras.json")
+    if rec.phase == "poses" or not path.exists():
+        message = f"camera poses are not estimated yet ({rec.status})"
+        raise APIError(409, "scene_not_ready", message, {"status": rec.status})
+    cf = load_camera_file(path)
+    # working images are named after our storage names; answer with the client's names
+    by_stem = {f.rsplit(".", 1)[0]: name for f, name in zip(rec.upload_files, rec.upload_names, strict=True)}
+    names = [by_stem.get(p.rsplit("/", 1)[-1].rsplit(".", 1)[0], p) for p in cf.file_paths]
+    return camera_file_to_dict(CameraFile(cf.cameras, names, cf.near_far), convention)
+
+
+@router.post(
+    "/v1/scenes/{scene_id}/render",
+    responses={
+        **ERRORS_READY,
+        406: {"model": ErrorBody, "description": "Accept names neither image/png nor image/jpeg"},
+        200: {"content": {"image/png": {}, "image/jpeg": {}}, "description": "the rendered view"},
+    },
+    response_class=Response,
+    summary="Render the scene from any camera (PNG or JPEG by Accept)",
+)
+def render_view(
+    scene_id: SceneId,
+    camera: RenderCamera,
+    svc: Svc,
+    owner: Owner,
+    accept: Annotated[str | None, Header()] = None,
+) -> Response:
+    media = negotiate(accept, ["image/png", "image/jpeg"])
+    if media is None:
+        raise APIError(406, "not_acceptable", "this endpoint returns image/png or image/jpeg")
+    _ready_scene(svc, scene_id, owner)
+    K, pose, w, h = _camera(camera, svc.settings)
+    out = svc.renders.render(scene_id, K, pose, w, h)
+    return Response(encode_image(out.rgb, media), media_type=media, headers={"Cache-Control": "no-store"})
+
+
+@router.post(
+    "/v1/scenes/{scene_id}/depth",
+    responses={
+        **ERRORS_READY,
+        406: {"model": ErrorBody, "description": "Accept names neither image/png nor application/x-npy"},
+        200: {
+            "content": {"image/png": {}, "application/x-npy": {}},
+            "description": "16-bit PNG (depth = value x Depth-Scale header, scene units, 0 = no surface), "
+            "float32 .npy (scene units), or with preview=true an 8-bit colour map",
+        },
+    },
+    response_class=Response,
+    summary="Depth map (target-camera z, scene units) for any camera",
+)
+def render_depth(
+    scene_id: SceneId,
+    camera: RenderCamera,
+    svc: Svc,
+    owner: Owner,
+    preview: Annotated[bool, Query(description="an 8-bit colour map for people instead of the data")] = False,
+    accept: Annotated[str | None, Header()] = None,
+) -> Response:
+    media = "image/png" if preview else negotiate(accept, ["image/png", "application/x-npy"])
+    if media is None:
+        raise APIError(406, "not_acceptable", "this endpoint returns image/png or application/x-npy")
+    _ready_scene(svc, scene_id, owner)
+    K, pose, w, h = _camera(camera, svc.settings)
+    out = svc.renders.render(scene_id, K, pose, w, h)
+    headers = {"Cache-Control": "no-store", "Depth-Units": "scene"}
+    headers.update({"Depth-Near": f"{out.near:.9g}", "Depth-Far": f"{out.far:.9g}"})
+    if preview:
+        body = encode_depth_preview(out.depth, out.near, out.far)
+    elif media == "image/png":
+        body = encode_depth_png16(out.depth, out.far)
+        headers["Depth-Scale"] = f"{depth_scale(out.far):.9g}"
+    else:
+        body = encode_depth_npy(out.depth)
+    return Response(body, media_type=media, headers=headers)
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/mpi",
+    responses={**ERRORS_READY, 200: {"description": "mpi.json of the baked cmc-mpi folder"}},
+    summary="The baked MPI's manifest (atlases at /v1/scenes/{id}/mpi/{atlas})",
+)
+def get_mpi(scene_id: SceneId, svc: Svc, owner: Owner) -> Response:
+    _ready_scene(svc, scene_id, owner)
+    return FileResponse(svc.storage.path(f"{scene_id}/baked/mpi.json"), media_type="application/json")
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/mpi/{name}",
+    responses={**ERRORS_READY, 200: {"content": {"image/png": {}, "application/json": {}}, "description": "a file"}},
+    summary="A file of the baked MPI: mpi.json or an atlas it names",
+)
+def get_mpi_file(scene_id: SceneId, name: str, svc: Svc, owner: Owner) -> Response:
+    _ready_scene(svc, scene_id, owner)
+    manifest_path = svc.storage.path(f"{scene_id}/baked/mpi.json")
+    if name == "mpi.json":
+        return FileResponse(manifest_path, media_type="application/json")
+    atlases = {m["atlas"] for m in json.loads(manifest_path.read_text())["mpis"]}
+    if name not in atlases:  # only names the manifest lists; never a client-built path
+        raise not_found("file")
+    return FileResponse(svc.storage.path(f"{scene_id}/baked/{name}"), media_type="image/png")
+
+
+# -- operations -------------------------------------------------------------------------------------
+
+
+@router.get("/healthz", response_model=Health, summary="The process is alive")
+def healthz() -> Health:
+    return Health(status="ok")
+
+
+@router.get(
+    "/readyz",
+    response_model=Health,
+    responses={503: {"model": ErrorBody, "description": "a dependency is down"}},
+    summary="Database, storage and job queue reachable",
+)
+def readyz(svc: Svc) -> Response:
+    checks, failed = {}, []
+    for name, probe in (("database", svc.store.ping), ("storage", svc.storage.check), ("queue", svc.queue.ping)):
+        try:
+            probe()
+            checks[name] = "ok"
+        except Exception as e:
+            checks[name] = f"{type(e).__name__}: {e}"[:200]
+            failed.append(name)
+    if failed:
+        raise APIError(503, "unavailable", f"not ready: {', '.join(failed)}", checks)
+    return JSONResponse(Health(status="ready", checks=checks).model_dump())
+
+
+@router.get(
+    "/metrics",
+    response_class=Response,
+    responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text format"}},
+    summary="Prometheus metrics",
+)
+def metrics(svc: Svc) -> Response:
+    return Response(svc.metrics.export(), media_type="text/plain; version=0.0.4; charset=utf-8")

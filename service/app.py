@@ -1,0 +1,74 @@
+"""The FastAPI application factory: ``uvicorn --factory service.app:create_app``.
+
+``CMC_MODE=celery`` sends jobs to Celery workers through Redis (docker-compose);
+``embedded`` (the default, used by ``cmc serve``) runs them in a thread of this process.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from service.api import Services, router
+from service.auth import KeyRing
+from service.errors import install_error_handlers
+from service.jobs import CeleryJobQueue, JobQueue
+from service.metrics import Metrics, MetricsMiddleware
+from service.renders import BakedCache
+from service.settings import Settings, load_settings
+from service.storage import LocalStorage
+from service.store import SceneStore
+
+log = logging.getLogger("cmc.api")
+
+DESCRIPTION = """Three photos of a scene in, a navigable 3D view out.
+
+Upload photos (`POST /v1/scenes`), poll the job (`GET /v1/scenes/{id}`) until `ready`, then
+render any camera (`POST /v1/scenes/{id}/render`, `/depth`) or fetch the baked MPI for
+client-side rendering. Errors are always `{"error": {"code", "message", "details"}}`.
+Cameras use the transforms.json shape with a `convention` field (`opengl`, ARKit's axes, or
+`opencv`); intrinsics are in pixels with the image's top-left corner at (0, 0).
+"""
+
+
+def create_app(settings: Settings | None = None, queue: JobQueue | None = None) -> FastAPI:
+    """Build the app. Without ``queue``: Celery (``settings.mode == 'celery'``) or the
+    embedded runner, started and stopped with the app's lifespan."""
+    settings = settings or load_settings()
+    store = SceneStore(settings.resolved_database_url)
+    storage = LocalStorage(settings.resolved_storage_dir)
+    keys = KeyRing.load(settings.api_keys, settings.api_keys_file)
+    runner = None
+    if queue is None:
+        if settings.mode == "celery":
+            queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue)
+        else:
+            from worker.embedded import EmbeddedRunner
+
+            runner = EmbeddedRunner(store, storage, settings)
+            queue = runner
+    metrics = Metrics(store, queue)
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        if keys.open:
+            log.warning("no API keys configured: requests are accepted without a key")
+        if runner is not None:
+            runner.start()
+        try:
+            yield
+        finally:
+            if runner is not None:
+                runner.stop()
+            store.close()
+
+    app = FastAPI(title="CMC reconstruction service", version="1.0.0", description=DESCRIPTION, lifespan=lifespan)
+    renders = BakedCache(storage, settings.render_cache_scenes, settings.render_concurrency)
+    app.state.services = Services(settings, store, storage, queue, keys, renders, metrics)
+    install_error_handlers(app)
+    app.add_middleware(MetricsMiddleware, metrics=metrics)
+    app.include_router(router)
+    return app

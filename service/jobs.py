@@ -1,0 +1,65 @@
+"""Sending jobs to workers: one small interface, a Celery implementation.
+
+The API never imports worker code: Celery tasks are sent *by name* (``cmc.poses`` on the CPU
+queue, ``cmc.train`` on the GPU queue) with the scene id as the only argument; the database
+holds everything else. The embedded runner (``worker.embedded``) implements the same
+interface in-process for ``cmc serve``.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from service.store import Phase
+
+TASK_NAMES: dict[str, str] = {"poses": "cmc.poses", "train": "cmc.train"}
+
+
+class JobQueue(Protocol):
+    def submit(self, scene_id: str, phase: Phase) -> None:
+        """Ask a worker to run ``phase`` of the scene's job (duplicates are harmless)."""
+        ...
+
+    def depth(self) -> dict[str, int]:
+        """Messages waiting, by queue name."""
+        ...
+
+    def ping(self) -> None:
+        """Raise if jobs cannot be sent (readiness probe)."""
+        ...
+
+
+class CeleryJobQueue:
+    """Sends tasks by name through a Celery client (no worker code imported)."""
+
+    def __init__(self, broker_url: str, cpu_queue: str = "cpu", gpu_queue: str = "gpu"):
+        from celery import Celery
+
+        self.queues = {"poses": cpu_queue, "train": gpu_queue}
+        self.app = Celery("cmc-api", broker=broker_url)
+        self.app.conf.broker_connection_retry_on_startup = True
+        self.app.conf.broker_transport_options = {"max_retries": 3, "interval_start": 0.2, "interval_step": 0.5}
+        self.broker_url = broker_url
+
+    def submit(self, scene_id: str, phase: Phase) -> None:
+        self.app.send_task(TASK_NAMES[phase], args=[scene_id], queue=self.queues[phase])
+
+    def _redis(self):
+        import redis
+
+        return redis.Redis.from_url(self.broker_url, socket_timeout=2, socket_connect_timeout=2)
+
+    def depth(self) -> dict[str, int]:
+        """Length of each queue's Redis list (Celery's Redis transport keeps a queue in one list)."""
+        r = self._redis()
+        try:
+            return {q: int(r.llen(q)) for q in self.queues.values()}
+        finally:
+            r.close()
+
+    def ping(self) -> None:
+        r = self._redis()
+        try:
+            r.ping()
+        finally:
+            r.close()

@@ -1,0 +1,119 @@
+"""Novel views and depth maps from baked MPIs, with an in-memory cache of loaded scenes.
+
+Rendering uses :class:`cmc.baking.BakedScene` (the baked atlases alone, no trained model).
+That needs torch, imported on the first render only; the rest of the API does not load it.
+At most ``render_concurrency`` renders run at once (each uses all of torch's threads); other
+requests wait their turn instead of thrashing the CPU.
+
+Depth encodings (``POST /v1/scenes/{id}/depth``, by ``Accept``):
+
+* ``image/png`` (default): 16-bit greyscale PNG, ``depth = value * scale`` in scene units
+  (target-camera z), ``scale`` in the ``Depth-Scale`` header (``2 * far / 65535``, so every
+  depth up to twice the far bound is exact to ``scale / 2``); 0 means no surface.
+* ``application/x-npy``: float32 NumPy array [H, W], scene units, 0 where nothing was hit.
+* ``?preview=true``: an 8-bit colour map of inverse depth (PNG) for people.
+
+Scene units are those of the cameras: arbitrary (SfM) for estimated poses, metres for ARKit.
+"""
+
+from __future__ import annotations
+
+import io
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from service.storage import Storage
+
+
+@dataclass
+class Rendered:
+    rgb: np.ndarray  # [H, W, 3] float32 in [0, 1]
+    depth: np.ndarray  # [H, W] float32, target-camera z in scene units, 0 where nothing was hit
+    near: float
+    far: float
+
+
+class BakedCache:
+    """LRU cache of loaded baked scenes, keyed by scene id."""
+
+    def __init__(self, storage: Storage, capacity: int, concurrency: int):
+        self.storage, self.capacity = storage, capacity
+        self._scenes: OrderedDict[str, Any] = OrderedDict()
+        self._lock = threading.Lock()
+        self._load_locks: dict[str, threading.Lock] = {}
+        self._slots = threading.Semaphore(concurrency)
+
+    def get(self, scene_id: str) -> Any:
+        from cmc.baking import BakedScene
+
+        with self._lock:
+            if scene_id in self._scenes:
+                self._scenes.move_to_end(scene_id)
+                return self._scenes[scene_id]
+            load_lock = self._load_locks.setdefault(scene_id, threading.Lock())
+        with load_lock:  # one load per scene, however many requests arrive together
+            with self._lock:
+                if scene_id in self._scenes:
+                    return self._scenes[scene_id]
+            baked = BakedScene.load(self.storage.path(f"{scene_id}/baked"))
+            with self._lock:
+                self._scenes[scene_id] = baked
+                while len(self._scenes) > self.capacity:
+                    self._scenes.popitem(last=False)
+                self._load_locks.pop(scene_id, None)
+        return baked
+
+    def evict(self, scene_id: str) -> None:
+        with self._lock:
+            self._scenes.pop(scene_id, None)
+
+    def render(self, scene_id: str, K: np.ndarray, world_from_cam: np.ndarray, width: int, height: int) -> Rendered:
+        """Colour and depth of one camera (OpenCV convention, pixels, see cmc.cameras)."""
+        import torch
+
+        baked = self.get(scene_id)
+        with self._slots, torch.inference_mode():
+            out = baked.render(K, world_from_cam, width, height)
+            rgb = out.rgb.float().cpu().numpy()
+            depth = out.depth.float().cpu().numpy()
+        return Rendered(rgb, depth, baked.near, baked.far)
+
+
+def encode_image(rgb: np.ndarray, media_type: str) -> bytes:
+    """[H, W, 3] float in [0, 1] -> PNG or JPEG bytes."""
+    im = Image.fromarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8))
+    buf = io.BytesIO()
+    if media_type == "image/jpeg":
+        im.save(buf, "JPEG", quality=90)
+    else:
+        im.save(buf, "PNG", compress_level=1)
+    return buf.getvalue()
+
+
+def depth_scale(far: float) -> float:
+    """Scene units per count of the 16-bit depth PNG."""
+    return 2.0 * far / 65535.0
+
+
+def encode_depth_png16(depth: np.ndarray, far: float) -> bytes:
+    counts = np.clip(np.round(depth / depth_scale(far)), 0, 65535).astype(np.uint16)
+    buf = io.BytesIO()
+    Image.fromarray(counts).save(buf, "PNG", compress_level=1)  # mode I;16: 16-bit greyscale
+    return buf.getvalue()
+
+
+def encode_depth_npy(depth: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, depth.astype(np.float32))
+    return buf.getvalue()
+
+
+def encode_depth_preview(depth: np.ndarray, near: float, far: float) -> bytes:
+    from cmc.demo import depth_preview
+
+    return encode_image(depth_preview(depth, near, far) * (depth > 0)[..., None], "image/png")

@@ -1,0 +1,91 @@
+"""Request and response bodies of the API (pydantic); internal record fields never leak."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.store import Status
+
+
+class SceneOptions(BaseModel):
+    """The optional ``options`` JSON part of an upload."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    preset: Literal["fast", "paper"] = Field("fast", description="fast: ~4 min on 2 CPU cores; paper: the paper's MLP")
+    steps: int | None = Field(None, ge=1, description="training steps (default: the preset's)")
+    resolution: int = Field(504, ge=64, le=2016, description="long side of the working images, pixels")
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="random seed (poses and training)")
+
+
+class ErrorDetail(BaseModel):
+    code: str = Field(description="stable, machine-readable")
+    message: str = Field(description="for people")
+    details: Any = None
+
+
+class ErrorBody(BaseModel):
+    error: ErrorDetail
+
+
+class JobError(BaseModel):
+    code: str = Field(
+        description="pose_estimation_failed, invalid_images, invalid_cameras, training_failed, "
+        "time_limit_exceeded, worker_lost or internal_error"
+    )
+    message: str
+
+
+class SceneLinks(BaseModel):
+    self: str
+    cameras: str
+    render: str
+    depth: str
+    mpi: str
+    viewer: str
+    video: str
+
+
+class SceneOut(BaseModel):
+    id: str
+    status: Status
+    progress: float = Field(description="progress of the current stage, 0-1")
+    eta_seconds: float | None = Field(description="estimated seconds left in the current stage, when known")
+    detail: str | None = Field(description="what the job is doing, for people")
+    error: JobError | None = Field(description="set when status is 'failed'")
+    options: SceneOptions
+    images: list[str] = Field(description="the uploaded photos' file names")
+    created_at: str = Field(description="ISO 8601, UTC")
+    updated_at: str
+    started_at: str | None
+    finished_at: str | None
+    links: SceneLinks
+
+
+class SceneList(BaseModel):
+    items: list[SceneOut]
+    next_cursor: str | None = Field(description="pass as ?cursor= for the next page; null on the last page")
+
+
+class RenderCamera(BaseModel):
+    """A camera to render, in the shape of one frame of the cameras file (transforms.json)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    transform_matrix: list[list[float]] = Field(description="4x4 (or 3x4) camera-to-world, row-major")
+    fl_x: float = Field(gt=0, description="focal length in pixels")
+    fl_y: float | None = Field(None, gt=0, description="default: fl_x")
+    cx: float | None = Field(None, description="principal point, pixels from the left edge (default: w / 2)")
+    cy: float | None = Field(None, description="pixels from the top edge (default: h / 2)")
+    w: int = Field(gt=0, le=8192, description="image width, pixels")
+    h: int = Field(gt=0, le=8192, description="image height, pixels")
+    convention: Literal["opengl", "opencv"] = Field(
+        "opengl", description="axes: opengl (x right, y up, z back; ARKit) or opencv (x right, y down, z forward)"
+    )
+
+
+class Health(BaseModel):
+    status: str
+    checks: dict[str, str] = Field(default_factory=dict)

@@ -1,0 +1,90 @@
+"""Service configuration: one ``Settings`` object, read from ``CMC_*`` environment variables.
+
+Built by :func:`load_settings` when an app or worker starts (never at import time), so tests
+and processes each get their own. Every field's env var is ``CMC_`` + the field name in
+capitals, e.g. ``CMC_DATABASE_URL``; ``.env.example`` lists the ones deployments set.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+MB = 1 << 20
+
+
+class Settings(BaseSettings):
+    """Settings shared by the API, the Celery workers and the embedded runner."""
+
+    model_config = SettingsConfigDict(env_prefix="CMC_", extra="ignore")
+
+    # -- where things live ------------------------------------------------------------------
+    data_dir: Path = Field(Path("cmc-data"), description="root for the default database and storage")
+    database_url: str = Field("", description="SQLAlchemy URL; default: SQLite file in data_dir")
+    storage_dir: Path | None = Field(None, description="artifact storage root; default data_dir/storage")
+    broker_url: str = Field("", description="Celery broker (redis://...); empty: no Celery (embedded runner)")
+    cpu_queue: str = Field("cpu", description="Celery queue of pose estimation")
+    gpu_queue: str = Field("gpu", description="Celery queue of training and baking")
+
+    # -- auth -------------------------------------------------------------------------------
+    api_keys: str = Field("", description="comma-separated API keys (hashed on load, never stored)")
+    api_keys_file: Path | None = Field(None, description="file of SHA-256 hex digests of API keys, one a line")
+
+    # -- upload limits ----------------------------------------------------------------------
+    min_images: int = Field(3, ge=2, le=20)
+    max_images: int = Field(3, ge=2, le=20)
+    max_image_bytes: int = Field(25 * MB, ge=1024, description="bytes per uploaded image")
+    max_image_pixels: int = Field(60_000_000, ge=1, description="pixels per uploaded image")
+    max_cameras_bytes: int = Field(1 * MB, ge=1024, description="bytes of the optional cameras / options parts")
+
+    # -- jobs -------------------------------------------------------------------------------
+    device: str = Field("auto", description="torch device for training: auto, cpu, cuda, cuda:N")
+    max_steps: int = Field(50_000, ge=1, description="largest 'steps' option accepted")
+    checkpoint_every: int = Field(0, ge=0, description="training steps between checkpoints; 0: the preset's")
+    lease_seconds: float = Field(60.0, gt=0, description="a job whose worker is silent this long is re-queued")
+    heartbeat_seconds: float = Field(1.0, gt=0, description="how often a running job reports and checks cancel")
+    requeue_after_seconds: float = Field(
+        7200.0, gt=0, description="re-send a queued job whose message no worker took for this long"
+    )
+    max_attempts: int = Field(3, ge=1, description="worker losses after which a job fails")
+    poses_time_limit: float = Field(900.0, gt=0, description="seconds for pose estimation")
+    train_time_limit: float = Field(6 * 3600.0, gt=0, description="seconds for training + baking")
+
+    # -- rendering --------------------------------------------------------------------------
+    render_cache_scenes: int = Field(8, ge=1, description="baked scenes kept in memory")
+    render_concurrency: int = Field(2, ge=1, description="renders computed at once (others wait)")
+    max_render_pixels: int = Field(4_000_000, ge=1, description="largest render (width x height)")
+
+    # -- embedded mode ----------------------------------------------------------------------
+    mode: Literal["embedded", "celery"] = Field(
+        "embedded", description="embedded: jobs run in the API process; celery: sent to workers"
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> Settings:
+        if self.min_images > self.max_images:
+            raise ValueError(f"min_images ({self.min_images}) > max_images ({self.max_images})")
+        if self.mode == "celery" and not self.broker_url:
+            raise ValueError("CMC_MODE=celery needs CMC_BROKER_URL")
+        return self
+
+    @property
+    def resolved_database_url(self) -> str:
+        return self.database_url or f"sqlite:///{(self.data_dir / 'cmc.db').resolve()}"
+
+    @property
+    def resolved_storage_dir(self) -> Path:
+        return (self.storage_dir or self.data_dir / "storage").resolve()
+
+    @property
+    def max_request_bytes(self) -> int:
+        """Largest upload request: every image at its limit plus the small parts."""
+        return self.max_images * self.max_image_bytes + 2 * self.max_cameras_bytes + 64 * 1024
+
+
+def load_settings(**overrides: object) -> Settings:
+    """Settings from the environment, with keyword overrides (tests, command-line flags)."""
+    return Settings(**overrides)  # type: ignore[arg-type]

@@ -1,0 +1,415 @@
+"""Durable scene records in SQL (SQLAlchemy): SQLite embedded, PostgreSQL in docker-compose.
+
+Why SQL: a scene record (owner, status, progress, error, artifacts) must survive a restart of
+the API, a worker or Redis. Redis here is only the job transport; the database is the truth.
+Every state change is one short transaction, and the ones that race (claiming a job, renewing
+a lease, an idempotent create) are single conditional statements, so concurrent API processes
+and workers need no other locking.
+
+Times are UNIX seconds (float, UTC) so SQLite and PostgreSQL behave the same.
+
+Job life cycle (``phase`` says which task runs next; ``status`` is what clients see)::
+
+    queued --poses task--> estimating_poses --> training --train task--> baking --> ready
+                                   \\-----------------\\--------------------\\--> failed
+    DELETE at any point: cancelled (the record is hidden, artifacts removed)
+
+A worker *claims* a job for a phase by taking its lease (``lease_owner``, ``lease_expires_at``)
+and renews it while it runs. A lease that expires means the worker died: the reaper
+(:meth:`SceneStore.stale_jobs`) hands the job to the queue again, and the next worker resumes
+from the last checkpoint.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    Float,
+    Integer,
+    String,
+    UniqueConstraint,
+    create_engine,
+    event,
+    func,
+    or_,
+    select,
+    update,
+)
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
+
+Status = Literal["queued", "estimating_poses", "training", "baking", "ready", "failed", "cancelled"]
+STATUSES: tuple[Status, ...] = ("queued", "estimating_poses", "training", "baking", "ready", "failed", "cancelled")
+TERMINAL: tuple[Status, ...] = ("ready", "failed", "cancelled")
+Phase = Literal["poses", "train", "done"]
+
+
+class Base(DeclarativeBase):
+    pass
+
+
+class SceneRow(Base):
+    __tablename__ = "scenes"
+    __table_args__ = (UniqueConstraint("owner", "idempotency_key", name="uq_scene_idempotency"),)
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    owner: Mapped[str] = mapped_column(String(64), index=True)
+    status: Mapped[str] = mapped_column(String(20), index=True)
+    phase: Mapped[str] = mapped_column(String(10))
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    eta_seconds: Mapped[float | None] = mapped_column(Float, nullable=True)
+    detail: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    error_code: Mapped[str | None] = mapped_column(String(40), nullable=True)
+    error_message: Mapped[str | None] = mapped_column(String(2000), nullable=True)
+    options: Mapped[dict[str, Any]] = mapped_column(JSON)
+    upload_names: Mapped[list[str]] = mapped_column(JSON)  # the client's file names (data, never paths)
+    upload_files: Mapped[list[str]] = mapped_column(JSON)  # our storage names, in the same order
+    has_cameras: Mapped[bool] = mapped_column(Boolean, default=False)
+    idempotency_key: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    request_digest: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    lease_owner: Mapped[str | None] = mapped_column(String(100), nullable=True)
+    lease_expires_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    deleted: Mapped[bool] = mapped_column(Boolean, default=False, index=True)
+    stats: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    created_at: Mapped[float] = mapped_column(Float)
+    updated_at: Mapped[float] = mapped_column(Float)
+    enqueued_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+    started_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+    finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+
+
+@dataclass(frozen=True)
+class SceneRecord:
+    """A snapshot of one scene row (plain data, safe to use after the session closed)."""
+
+    id: str
+    owner: str
+    status: Status
+    phase: Phase
+    progress: float
+    eta_seconds: float | None
+    detail: str | None
+    error_code: str | None
+    error_message: str | None
+    options: dict[str, Any]
+    upload_names: list[str]
+    upload_files: list[str]
+    has_cameras: bool
+    idempotency_key: str | None
+    request_digest: str | None
+    attempts: int
+    lease_owner: str | None
+    lease_expires_at: float | None
+    cancel_requested: bool
+    deleted: bool
+    stats: dict[str, Any]
+    created_at: float
+    updated_at: float
+    enqueued_at: float | None
+    started_at: float | None
+    finished_at: float | None
+
+    @staticmethod
+    def of(row: SceneRow) -> SceneRecord:
+        return SceneRecord(**{f: getattr(row, f) for f in SceneRecord.__dataclass_fields__})
+
+
+class IdempotencyConflict(Exception):
+    """The Idempotency-Key was used before for a different request."""
+
+
+@dataclass(frozen=True)
+class Heartbeat:
+    """What a renewing worker learns: whether it still holds the job and whether to stop."""
+
+    holds_lease: bool
+    cancel_requested: bool
+
+
+class SceneStore:
+    """All reads and writes of scene records. Thread-safe (one engine, a session per call)."""
+
+    def __init__(self, url: str):
+        kwargs: dict[str, Any] = {"pool_pre_ping": True}
+        if url.startswith("sqlite"):
+            kwargs["connect_args"] = {"check_same_thread": False, "timeout": 30}
+        self.engine = create_engine(url, **kwargs)
+        if url.startswith("sqlite"):
+            event.listen(self.engine, "connect", _sqlite_pragmas)
+        Base.metadata.create_all(self.engine)
+        self._sessions = sessionmaker(self.engine, expire_on_commit=False)
+
+    @contextmanager
+    def _session(self) -> Iterator[Session]:
+        with self._sessions() as s, s.begin():
+            yield s
+
+    def ping(self) -> None:
+        """Raise if the database cannot be reached."""
+        with self._session() as s:
+            s.execute(select(1))
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    # -- create / read ------------------------------------------------------------------------
+
+    def create(
+        self,
+        owner: str,
+        options: dict[str, Any],
+        upload_names: list[str],
+        upload_files: list[str],
+        has_cameras: bool,
+        idempotency_key: str | None = None,
+        request_digest: str | None = None,
+        scene_id: str | None = None,
+    ) -> tuple[SceneRecord, bool]:
+        """Insert a queued scene; returns (record, created).
+
+        With an ``idempotency_key`` already used by ``owner``, returns the existing scene and
+        False when ``request_digest`` matches, and raises IdempotencyConflict when it does not.
+        """
+        now = time.time()
+        row = SceneRow(
+            id=scene_id or uuid.uuid4().hex,
+            owner=owner,
+            status="queued",
+            phase="poses",
+            progress=0.0,
+            options=options,
+            upload_names=upload_names,
+            upload_files=upload_files,
+            has_cameras=has_cameras,
+            idempotency_key=idempotency_key,
+            request_digest=request_digest,
+            attempts=0,
+            cancel_requested=False,
+            deleted=False,
+            stats={},
+            created_at=now,
+            updated_at=now,
+            enqueued_at=now,
+        )
+        try:
+            with self._session() as s:
+                s.add(row)
+            return SceneRecord.of(row), True
+        except IntegrityError:
+            if idempotency_key is None:
+                raise
+        existing = self.find_by_idempotency_key(owner, idempotency_key)
+        if existing is None:  # deleted between the insert and this read
+            raise IdempotencyConflict("the scene made with this Idempotency-Key was deleted")
+        if existing.request_digest != request_digest:
+            raise IdempotencyConflict("this Idempotency-Key was used for a different upload")
+        return existing, False
+
+    def find_by_idempotency_key(self, owner: str, key: str) -> SceneRecord | None:
+        with self._session() as s:
+            row = s.scalar(select(SceneRow).where(SceneRow.owner == owner, SceneRow.idempotency_key == key))
+            return None if row is None or row.deleted else SceneRecord.of(row)
+
+    def get(self, scene_id: str, owner: str | None = None, include_deleted: bool = False) -> SceneRecord | None:
+        """The scene, or None when absent, deleted (unless asked for) or owned by someone else."""
+        with self._session() as s:
+            row = s.get(SceneRow, scene_id)
+            if row is None or (row.deleted and not include_deleted) or (owner is not None and row.owner != owner):
+                return None
+            return SceneRecord.of(row)
+
+    def list(self, owner: str, limit: int, before: tuple[float, str] | None = None) -> list[SceneRecord]:
+        """The owner's scenes, newest first; ``before`` = (created_at, id) of the last one seen."""
+        q = select(SceneRow).where(SceneRow.owner == owner, SceneRow.deleted.is_(False))
+        if before is not None:
+            t, i = before
+            q = q.where(or_(SceneRow.created_at < t, (SceneRow.created_at == t) & (SceneRow.id < i)))
+        q = q.order_by(SceneRow.created_at.desc(), SceneRow.id.desc()).limit(limit)
+        with self._session() as s:
+            return [SceneRecord.of(r) for r in s.scalars(q)]
+
+    def count_by_status(self) -> dict[str, int]:
+        with self._session() as s:
+            rows = s.execute(
+                select(SceneRow.status, func.count()).where(SceneRow.deleted.is_(False)).group_by(SceneRow.status)
+            )
+            counts = {st: 0 for st in STATUSES}
+            counts.update({st: n for st, n in rows})
+            return counts
+
+    def finished_durations(self) -> list[tuple[str, float]]:
+        """(status, seconds from upload to the end) of every finished job."""
+        with self._session() as s:
+            rows = s.execute(
+                select(SceneRow.status, SceneRow.finished_at - SceneRow.created_at).where(
+                    SceneRow.finished_at.is_not(None)
+                )
+            )
+            return [(st, float(d)) for st, d in rows]
+
+    # -- changes by the API ---------------------------------------------------------------------
+
+    def delete(self, scene_id: str) -> None:
+        """Hide the scene and ask a running job to stop (the record stays as a tombstone)."""
+        now = time.time()
+        with self._session() as s:
+            row = s.get(SceneRow, scene_id)
+            if row is None:
+                return
+            row.deleted, row.cancel_requested, row.updated_at = True, True, now
+            if row.status not in TERMINAL:
+                row.status, row.finished_at = "cancelled", now
+
+    def purge(self, scene_id: str) -> None:
+        """Remove a record outright (a scene whose job could not even be queued)."""
+        with self._session() as s:
+            row = s.get(SceneRow, scene_id)
+            if row is not None:
+                s.delete(row)
+
+    # -- changes by workers ---------------------------------------------------------------------
+
+    def claim(self, scene_id: str, phase: Phase, worker: str, lease_seconds: float) -> SceneRecord | None:
+        """Take the job for ``phase`` unless it is finished, cancelled, in another phase or held
+        by a live worker. Returns the claimed record, or None (a duplicate delivery: drop it)."""
+        now = time.time()
+        stmt = (
+            update(SceneRow)
+            .where(
+                SceneRow.id == scene_id,
+                SceneRow.phase == phase,
+                SceneRow.status.not_in(TERMINAL),
+                SceneRow.cancel_requested.is_(False),
+                or_(SceneRow.lease_expires_at.is_(None), SceneRow.lease_expires_at < now),
+            )
+            .values(lease_owner=worker, lease_expires_at=now + lease_seconds, updated_at=now)
+        )
+        with self._session() as s:
+            if s.execute(stmt).rowcount != 1:
+                return None
+            row = s.get(SceneRow, scene_id)
+            if row is not None and row.started_at is None:
+                row.started_at = now
+            return None if row is None else SceneRecord.of(row)
+
+    def heartbeat(self, scene_id: str, worker: str, lease_seconds: float, **fields: Any) -> Heartbeat:
+        """Renew the lease and write progress ``fields`` if ``worker`` still holds the job."""
+        now = time.time()
+        stmt = (
+            update(SceneRow)
+            .where(SceneRow.id == scene_id, SceneRow.lease_owner == worker, SceneRow.status.not_in(TERMINAL))
+            .values(lease_expires_at=now + lease_seconds, updated_at=now, **fields)
+        )
+        with self._session() as s:
+            held = s.execute(stmt).rowcount == 1
+            cancel = s.scalar(select(SceneRow.cancel_requested).where(SceneRow.id == scene_id))
+        return Heartbeat(held, bool(cancel) if cancel is not None else True)
+
+    def advance(self, scene_id: str, worker: str, phase: Phase, status: Status, **fields: Any) -> bool:
+        """Finish the held phase: move to ``phase``/``status``, drop the lease. False if not held."""
+        now = time.time()
+        values: dict[str, Any] = dict(
+            phase=phase, status=status, lease_owner=None, lease_expires_at=None, updated_at=now, **fields
+        )
+        if status in TERMINAL:
+            values["finished_at"] = now
+        else:
+            values["enqueued_at"] = now
+        stmt = (
+            update(SceneRow)
+            .where(SceneRow.id == scene_id, SceneRow.lease_owner == worker, SceneRow.status.not_in(TERMINAL))
+            .values(**values)
+        )
+        with self._session() as s:
+            return s.execute(stmt).rowcount == 1
+
+    def release(self, scene_id: str, worker: str) -> None:
+        """Give the lease back without changing the phase (the job will be picked up again)."""
+        with self._session() as s:
+            s.execute(
+                update(SceneRow)
+                .where(SceneRow.id == scene_id, SceneRow.lease_owner == worker)
+                .values(lease_owner=None, lease_expires_at=None, updated_at=time.time())
+            )
+
+    def fail(self, scene_id: str, code: str, message: str) -> None:
+        """Mark a job failed (whoever holds it); no-op when it already ended."""
+        now = time.time()
+        with self._session() as s:
+            s.execute(
+                update(SceneRow)
+                .where(SceneRow.id == scene_id, SceneRow.status.not_in(TERMINAL))
+                .values(
+                    status="failed",
+                    error_code=code,
+                    error_message=message[:2000],
+                    lease_owner=None,
+                    lease_expires_at=None,
+                    eta_seconds=None,
+                    updated_at=now,
+                    finished_at=now,
+                )
+            )
+
+    def stale_jobs(self, requeue_after_seconds: float) -> list[SceneRecord]:
+        """Unfinished jobs whose worker's lease expired, or that waited in a queue so long
+        that their message was probably lost (e.g. a Redis restart without persistence)."""
+        now = time.time()
+        q = select(SceneRow).where(
+            SceneRow.status.not_in(TERMINAL),
+            SceneRow.cancel_requested.is_(False),
+            or_(
+                SceneRow.lease_expires_at < now,
+                SceneRow.lease_expires_at.is_(None) & (SceneRow.enqueued_at < now - requeue_after_seconds),
+            ),
+        )
+        with self._session() as s:
+            return [SceneRecord.of(r) for r in s.scalars(q)]
+
+    def unfinished_jobs(self) -> list[SceneRecord]:
+        """Every job that is not finished nor cancelled (the embedded runner's restart list)."""
+        q = select(SceneRow).where(SceneRow.status.not_in(TERMINAL), SceneRow.cancel_requested.is_(False))
+        with self._session() as s:
+            return [SceneRecord.of(r) for r in s.scalars(q.order_by(SceneRow.created_at))]
+
+    def requeue(self, scene: SceneRecord, max_attempts: int) -> bool:
+        """Drop an expired lease and count the attempt; fails the job after ``max_attempts``
+        lost workers. True when the caller should send the job to its queue again."""
+        now = time.time()
+        lost = scene.lease_owner is not None
+        attempts = scene.attempts + (1 if lost else 0)
+        with self._session() as s:
+            stmt = (
+                update(SceneRow)
+                .where(
+                    SceneRow.id == scene.id,
+                    SceneRow.status.not_in(TERMINAL),
+                    # unchanged since it was read: nobody claimed or renewed it meanwhile
+                    SceneRow.updated_at == scene.updated_at,
+                )
+                .values(lease_owner=None, lease_expires_at=None, attempts=attempts, enqueued_at=now, updated_at=now)
+            )
+            if s.execute(stmt).rowcount != 1:
+                return False
+        if attempts >= max_attempts:
+            self.fail(scene.id, "worker_lost", f"the job's worker stopped {attempts} times; giving up")
+            return False
+        return True
+
+
+def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
+    cur = dbapi_connection.cursor()
+    cur.execute("PRAGMA journal_mode=WAL")  # readers do not block the writer (API + runner threads)
+    cur.execute("PRAGMA busy_timeout=30000")
+    cur.execute("PRAGMA synchronous=NORMAL")
+    cur.close()

@@ -1,0 +1,19 @@
+"""The committed OpenAPI spec (openapi/openapi.json) is exactly what the app serves."""
+
+from __future__ import annotations
+
+import json
+
+from service.openapi import SPEC_PATH, current_spec, render
+
+
+def test_committed_spec_matches_the_app() -> None:
+    spec = current_spec()
+    committed = SPEC_PATH.read_text()
+    assert committed == render(spec), "the API changed: run `python -m service.openapi` and commit openapi/openapi.json"
+    paths = json.loads(committed)["paths"]
+    assert "/v1/scenes/{scene_id}/render" in paths and "post" in paths["/v1/scenes/{scene_id}/render"]
+    upload = paths["/v1/scenes"]["post"]
+    assert "multipart/form-data" in upload["requestBody"]["content"]
+    assert {"202", "413", "415", "422"} <= set(upload["responses"])
+    assert spec["components"]["securitySchemes"]["HTTPBearer"]["scheme"] == "bearer"

@@ -1,0 +1,134 @@
+"""The scene store on SQLite and on the real PostgreSQL at 127.0.0.1:5432 (a throw-away database
+per test): job claims are exclusive, leases expire and are re-queued, idempotent creates, the
+tombstones of deleted scenes, pagination."""
+
+from __future__ import annotations
+
+import os
+import time
+import uuid
+
+import pytest
+
+from service.store import IdempotencyConflict, SceneStore
+
+PG_ADMIN = os.environ.get("CMC_TEST_POSTGRES", "postgresql://postgres@127.0.0.1:5432/postgres")
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def store(request, tmp_path):
+    if request.param == "sqlite":
+        s = SceneStore(f"sqlite:///{tmp_path / 'cmc.db'}")
+        yield s
+        s.close()
+        return
+    psycopg = pytest.importorskip("psycopg")
+    name = f"cmc_test_{uuid.uuid4().hex[:12]}"
+    try:
+        admin = psycopg.connect(PG_ADMIN, autocommit=True, connect_timeout=3)
+    except psycopg.OperationalError as e:
+        if os.environ.get("CI"):
+            raise
+        pytest.skip(f"no PostgreSQL at {PG_ADMIN}: {e}")
+    admin.execute(f'CREATE DATABASE "{name}"')
+    url = PG_ADMIN.replace("postgresql://", "postgresql+psycopg://").rsplit("/", 1)[0] + f"/{name}"
+    s = SceneStore(url)
+    try:
+        yield s
+    finally:
+        s.close()
+        admin.execute(f'DROP DATABASE "{name}" WITH (FORCE)')
+        admin.close()
+
+
+def make(store: SceneStore, owner: str = "o", key: str | None = None, digest: str | None = None):
+    rec, created = store.create(owner, {"preset": "fast"}, ["a.jpg", "b.jpg"], ["00.jpg", "01.jpg"], False, key, digest)
+    return rec, created
+
+
+def test_claim_is_exclusive_and_follows_the_phase(store: SceneStore) -> None:
+    rec, _ = make(store)
+    assert store.claim(rec.id, "train", "w1", 30) is None  # wrong phase
+    got = store.claim(rec.id, "poses", "w1", 30)
+    assert got is not None and got.lease_owner == "w1" and got.started_at is not None
+    assert store.claim(rec.id, "poses", "w2", 30) is None  # held by a live worker
+    assert store.heartbeat(rec.id, "w2", 30, progress=0.5).holds_lease is False
+    hb = store.heartbeat(rec.id, "w1", 30, status="estimating_poses", progress=0.5)
+    assert hb.holds_lease and not hb.cancel_requested
+    assert store.get(rec.id).progress == 0.5
+    assert not store.advance(rec.id, "w2", "train", "training")
+    assert store.advance(rec.id, "w1", "train", "training", progress=0.0)
+    after = store.get(rec.id)
+    assert (after.phase, after.status, after.lease_owner) == ("train", "training", None)
+    assert store.claim(rec.id, "poses", "w1", 30) is None  # a duplicate of the finished phase
+    assert store.claim(rec.id, "train", "w2", 30) is not None
+
+
+def test_expired_lease_is_requeued_then_failed_after_max_attempts(store: SceneStore) -> None:
+    rec, _ = make(store)
+    assert store.stale_jobs(3600) == []
+    for attempt in (1, 2):
+        assert store.claim(rec.id, "poses", f"w{attempt}", 0.05) is not None
+        time.sleep(0.1)
+        stale = store.stale_jobs(3600)
+        assert [s.id for s in stale] == [rec.id]
+        assert store.requeue(stale[0], max_attempts=3) is True
+        assert store.requeue(stale[0], max_attempts=3) is False  # already handled by someone else
+        assert store.get(rec.id).attempts == attempt
+    assert store.claim(rec.id, "poses", "w3", 0.05) is not None
+    time.sleep(0.1)
+    assert store.requeue(store.stale_jobs(3600)[0], max_attempts=3) is False
+    failed = store.get(rec.id)
+    assert failed.status == "failed" and failed.error_code == "worker_lost" and failed.finished_at is not None
+
+
+def test_a_queued_job_whose_message_was_lost_is_sent_again(store: SceneStore) -> None:
+    rec, _ = make(store)
+    assert store.stale_jobs(requeue_after_seconds=60) == []
+    time.sleep(0.05)
+    assert [s.id for s in store.stale_jobs(requeue_after_seconds=0.01)] == [rec.id]
+    assert store.requeue(store.stale_jobs(0.01)[0], max_attempts=1) is True  # not a lost worker
+    assert store.get(rec.id).attempts == 0
+
+
+def test_delete_leaves_a_tombstone_that_stops_the_worker(store: SceneStore) -> None:
+    rec, _ = make(store)
+    store.claim(rec.id, "poses", "w1", 30)
+    store.delete(rec.id)
+    assert store.get(rec.id) is None
+    tomb = store.get(rec.id, include_deleted=True)
+    assert tomb.deleted and tomb.status == "cancelled" and tomb.cancel_requested
+    hb = store.heartbeat(rec.id, "w1", 30)
+    assert hb.cancel_requested and not hb.holds_lease  # cancelled is terminal: the lease is void
+    assert store.stale_jobs(0) == [] and store.unfinished_jobs() == []
+
+
+def test_idempotent_create(store: SceneStore) -> None:
+    first, created = make(store, key="k1", digest="d1")
+    again, created_again = make(store, key="k1", digest="d1")
+    assert created and not created_again and again.id == first.id
+    with pytest.raises(IdempotencyConflict):
+        make(store, key="k1", digest="d2")
+    other_owner, created = make(store, owner="p", key="k1", digest="d1")
+    assert created and other_owner.id != first.id
+    unkeyed = [make(store)[0].id for _ in range(2)]
+    assert len(set(unkeyed)) == 2
+
+
+def test_list_pages_by_owner_newest_first(store: SceneStore) -> None:
+    ids = [make(store)[0].id for _ in range(5)]
+    make(store, owner="someone else")
+    page1 = store.list("o", 3)
+    page2 = store.list("o", 3, (page1[-1].created_at, page1[-1].id))
+    assert [r.id for r in page1 + page2] == ids[::-1]
+    assert store.count_by_status()["queued"] == 6
+
+
+def test_fail_and_finished_durations(store: SceneStore) -> None:
+    rec, _ = make(store)
+    store.fail(rec.id, "training_failed", "x" * 5000)
+    done = store.get(rec.id)
+    assert done.status == "failed" and len(done.error_message) == 2000
+    store.fail(rec.id, "other", "ignored")  # already ended
+    assert store.get(rec.id).error_code == "training_failed"
+    assert [s for s, _ in store.finished_durations()] == ["failed"]

@@ -1,0 +1,102 @@
+"""The Celery worker: ``celery -A worker.celery_app worker -Q cpu`` (pose estimation) or
+``-Q gpu`` (training and baking); settings from ``CMC_*`` variables (service.settings).
+
+Delivery guarantees: tasks are acknowledged after they finish (``acks_late``) and given back
+when their worker process dies (``reject_on_worker_lost``); each worker takes one message at a
+time (prefetch 1); Redis' visibility timeout is longer than the longest job, so a running job
+is never handed out twice while its worker lives. A worker that dies is detected sooner by the
+job lease in the database: every worker runs the reaper (``requeue_stale_jobs``) at start and
+every ``lease_seconds / 2``, and the next worker resumes from the last checkpoint. A message
+delivered twice is harmless: claiming a job in the database is atomic.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+from celery import Celery
+from celery.signals import worker_ready, worker_shutting_down
+
+from service.jobs import TASK_NAMES, CeleryJobQueue
+from service.settings import Settings, load_settings
+from service.storage import LocalStorage
+from service.store import SceneStore
+from worker.pipeline import JobContext, requeue_stale_jobs, run_job
+
+log = logging.getLogger("cmc.worker")
+
+
+def create_celery(settings: Settings) -> Celery:
+    app = Celery("cmc-worker", broker=settings.broker_url or "redis://127.0.0.1:6379/0")
+    longest = max(settings.poses_time_limit, settings.train_time_limit)
+    app.conf.update(
+        task_acks_late=True,
+        task_reject_on_worker_lost=True,
+        worker_prefetch_multiplier=1,
+        broker_transport_options={"visibility_timeout": int(longest + 3600)},
+        broker_connection_retry_on_startup=True,
+        task_routes={
+            TASK_NAMES["poses"]: {"queue": settings.cpu_queue},
+            TASK_NAMES["train"]: {"queue": settings.gpu_queue},
+        },
+        task_default_queue=settings.cpu_queue,
+        task_ignore_result=True,
+        worker_hijack_root_logger=False,
+        worker_cancel_long_running_tasks_on_connection_loss=False,
+    )
+    return app
+
+
+settings = load_settings(mode="celery")
+app = create_celery(settings)
+_ctx: JobContext | None = None  # one per worker process, made after the fork
+
+
+def context() -> JobContext:
+    global _ctx
+    if _ctx is None:
+        queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue)
+        store = SceneStore(settings.resolved_database_url)
+        _ctx = JobContext(store, LocalStorage(settings.resolved_storage_dir), queue, settings)
+    return _ctx
+
+
+# Hard limits are a backstop: the pipeline stops a phase at its own (soft) limit first, cleanly.
+@app.task(name=TASK_NAMES["poses"], time_limit=settings.poses_time_limit + 300)
+def poses_task(scene_id: str) -> str:
+    return run_job(context(), scene_id, "poses")
+
+
+@app.task(name=TASK_NAMES["train"], time_limit=settings.train_time_limit + 300)
+def train_task(scene_id: str) -> str:
+    return run_job(context(), scene_id, "train")
+
+
+def _reaper(stop: threading.Event) -> None:
+    ctx = JobContext(
+        SceneStore(settings.resolved_database_url),
+        LocalStorage(settings.resolved_storage_dir),
+        CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue),
+        settings,
+    )
+    while True:
+        try:
+            requeue_stale_jobs(ctx)
+        except Exception:
+            log.warning("reaper pass failed", exc_info=True)
+        if stop.wait(settings.lease_seconds / 2):
+            return
+
+
+_reaper_stop = threading.Event()
+
+
+@worker_ready.connect
+def _start_reaper(**_: object) -> None:
+    threading.Thread(target=_reaper, args=(_reaper_stop,), name="cmc-reaper", daemon=True).start()
+
+
+@worker_shutting_down.connect
+def _stop_reaper(**_: object) -> None:
+    _reaper_stop.set()

@@ -1,0 +1,69 @@
+"""The embedded job runner of ``cmc serve``: the same pipeline in a thread of the API process.
+
+No Redis, no Celery: jobs run one at a time, in the order sent. It implements
+:class:`service.jobs.JobQueue`, so the API sends jobs to it exactly as it would to Celery.
+At start it re-runs every unfinished job of the database (a previous process stopped while
+they were queued or running; training resumes from its checkpoint). At shutdown it asks the
+running job to checkpoint and stop, leaving it for the next start. One ``cmc serve`` process
+per data folder.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+
+from service.settings import Settings
+from service.storage import Storage
+from service.store import Phase, SceneStore
+from worker.pipeline import JobContext, run_job
+
+log = logging.getLogger("cmc.worker")
+
+
+class EmbeddedRunner:
+    def __init__(self, store: SceneStore, storage: Storage, settings: Settings):
+        self.ctx = JobContext(store, storage, self, settings)
+        self._jobs: queue.Queue[tuple[str, Phase] | None] = queue.Queue()
+        self._thread = threading.Thread(target=self._loop, name="cmc-embedded-runner", daemon=True)
+
+    # -- JobQueue ------------------------------------------------------------------------------
+
+    def submit(self, scene_id: str, phase: Phase) -> None:
+        self._jobs.put((scene_id, phase))
+
+    def depth(self) -> dict[str, int]:
+        return {"embedded": self._jobs.qsize()}
+
+    def ping(self) -> None:
+        if not self._thread.is_alive():
+            raise RuntimeError("the embedded job runner is not running")
+
+    # -- life cycle ----------------------------------------------------------------------------
+
+    def start(self) -> None:
+        unfinished = self.ctx.store.unfinished_jobs()
+        for rec in unfinished:
+            if rec.lease_owner is not None:  # held by the previous process of this data folder
+                self.ctx.store.release(rec.id, rec.lease_owner)
+            self.submit(rec.id, rec.phase)  # type: ignore[arg-type]
+        if unfinished:
+            log.warning("resuming %d unfinished job(s) from the last run", len(unfinished))
+        self._thread.start()
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """Checkpoint and stop the running job (it stays queued for the next start)."""
+        self.ctx.shutdown.set()
+        self._jobs.put(None)
+        self._thread.join(timeout)
+
+    def _loop(self) -> None:
+        while True:
+            item = self._jobs.get()
+            if item is None or self.ctx.shutdown.is_set():
+                return
+            try:
+                run_job(self.ctx, *item)
+            except Exception:  # never let one job end the runner (e.g. the database blinked)
+                log.exception("job %s phase %s: runner error", *item)

@@ -1,0 +1,319 @@
+"""The job pipeline: pose estimation, then training and baking. Shared by the Celery tasks
+(``worker.celery_app``) and the embedded runner of ``cmc serve`` (``worker.embedded``).
+
+A job runs in two phases, each a separate task so GPU workers only train and bake:
+
+* ``poses`` (CPU queue): :func:`cmc.poses.estimate_poses` on the uploads, or
+  :func:`cmc.poses.poses_from_client` when the upload came with a cameras file; writes the
+  scene folder ``{id}/scene/`` and sends the ``train`` phase.
+* ``train`` (GPU queue): trains with checkpoints in ``{id}/checkpoint.pt`` (resumed when a
+  previous worker died), bakes ``{id}/baked/``, marks the scene ready.
+
+While a phase runs, a heartbeat thread renews the job's lease, writes progress to the scene
+record and reads the cancel flag every ``heartbeat_seconds``, so DELETE stops a job within
+seconds; the phase's time limit is enforced by the same thread. Work stops cooperatively at
+the next training step (or COLMAP checkpoint), after a checkpoint is written.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import socket
+import threading
+import time
+import traceback
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from service.jobs import JobQueue
+from service.settings import Settings
+from service.storage import Storage
+from service.store import Phase, SceneRecord, SceneStore
+
+log = logging.getLogger("cmc.worker")
+
+StopReason = Literal["cancelled", "lease_lost", "time_limit", "shutdown"]
+
+
+def new_worker_id() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:6]}"
+
+
+@dataclass
+class JobContext:
+    """What a phase needs: the record store, artifact storage, the queue for the next phase."""
+
+    store: SceneStore
+    storage: Storage
+    queue: JobQueue
+    settings: Settings
+    worker_id: str = field(default_factory=new_worker_id)
+    shutdown: threading.Event = field(default_factory=threading.Event)  # set: stop jobs, keep them queued
+
+
+class JobFailure(Exception):
+    """The job cannot succeed; ``code`` is the stable error code clients see."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code, self.message = code, message
+
+
+class JobStopped(Exception):
+    """The heartbeat asked the phase to stop (see ``_Heartbeat.reason``)."""
+
+
+class _Heartbeat:
+    """Renews the lease, writes progress and watches for cancel / time limit / shutdown."""
+
+    def __init__(self, ctx: JobContext, scene_id: str, time_limit: float):
+        self.ctx, self.scene_id = ctx, scene_id
+        self.deadline = time.monotonic() + time_limit
+        self.reason: StopReason | None = None
+        self._stop = threading.Event()
+        self._done = threading.Event()
+        self._lock = threading.Lock()
+        self._pending: dict[str, Any] = {}
+        self._thread = threading.Thread(target=self._run, name=f"heartbeat-{scene_id[:8]}", daemon=True)
+
+    def __enter__(self) -> _Heartbeat:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._done.set()
+        self._thread.join()
+
+    def set(self, **fields: Any) -> None:
+        """Queue fields for the next heartbeat write (progress, status, eta_seconds, detail...)."""
+        with self._lock:
+            self._pending.update(fields)
+
+    def flush(self) -> None:
+        """Write pending fields now (before a phase ends)."""
+        self._beat()
+
+    def should_stop(self) -> bool:
+        return self._stop.is_set()
+
+    def check(self) -> None:
+        if self._stop.is_set():
+            raise JobStopped(self.reason or "stopped")
+
+    def _halt(self, reason: StopReason) -> None:
+        if self.reason is None:
+            self.reason = reason
+        self._stop.set()
+
+    def _beat(self) -> None:
+        with self._lock:
+            fields, self._pending = self._pending, {}
+        s = self.ctx.settings
+        hb = self.ctx.store.heartbeat(self.scene_id, self.ctx.worker_id, s.lease_seconds, **fields)
+        if not hb.holds_lease:
+            self._halt("lease_lost")
+        elif hb.cancel_requested:
+            self._halt("cancelled")
+        elif time.monotonic() > self.deadline:
+            self._halt("time_limit")
+        elif self.ctx.shutdown.is_set():
+            self._halt("shutdown")
+
+    def _run(self) -> None:
+        while not self._done.wait(self.ctx.settings.heartbeat_seconds):
+            try:
+                self._beat()
+            except Exception:  # the database may blink; the lease is generous
+                log.warning("heartbeat of %s failed", self.scene_id, exc_info=True)
+
+
+def run_job(ctx: JobContext, scene_id: str, phase: Phase) -> str:
+    """Run one phase of a job if it can be claimed. Returns what happened (for logs):
+    'skipped' (finished, cancelled, another phase, or held by a live worker), 'done',
+    'failed', 'cancelled', 'stopped' (lease lost or shutdown: the job stays queued)."""
+    rec = ctx.store.claim(scene_id, phase, ctx.worker_id, ctx.settings.lease_seconds)
+    if rec is None:
+        log.info("job %s phase %s: nothing to do", scene_id, phase)
+        return "skipped"
+    s = ctx.settings
+    limit = s.poses_time_limit if phase == "poses" else s.train_time_limit
+    outcome = "done"
+    with _Heartbeat(ctx, scene_id, limit) as hb:
+        try:
+            if phase == "poses":
+                _estimate_poses(ctx, rec, hb)
+            else:
+                _train_and_bake(ctx, rec, hb)
+        except JobFailure as e:
+            ctx.store.fail(scene_id, e.code, _user_names(rec, e.message))
+            outcome = "failed"
+        except Exception as e:
+            if hb.reason is None:
+                log.error("job %s phase %s crashed:\n%s", scene_id, phase, traceback.format_exc())
+                ctx.store.fail(scene_id, "internal_error", f"{type(e).__name__}: {e}")
+                outcome = "failed"
+            elif hb.reason == "time_limit":
+                ctx.store.fail(scene_id, "time_limit_exceeded", f"{phase} took longer than {limit:.0f} s")
+                outcome = "failed"
+            elif hb.reason == "cancelled":
+                outcome = "cancelled"
+            else:  # lease lost or shutting down: someone (or the next start) resumes it
+                ctx.store.release(scene_id, ctx.worker_id)
+                outcome = "stopped"
+    after = ctx.store.get(scene_id, include_deleted=True)
+    if after is None or after.deleted:
+        ctx.storage.delete_scene(scene_id)  # anything written after the API removed the data
+    log.info("job %s phase %s: %s", scene_id, phase, outcome)
+    return outcome
+
+
+def _user_names(rec: SceneRecord, message: str) -> str:
+    """Error messages name photos by our storage names; say the client's names instead."""
+    for ours, theirs in zip(rec.upload_files, rec.upload_names, strict=True):
+        message = message.replace(ours, theirs)
+    return message
+
+
+def _fresh_dir(ctx: JobContext, key: str) -> Path:
+    """An empty folder at storage ``key`` (leftovers of an interrupted attempt removed)."""
+    p = ctx.storage.path(key)
+    if p.exists():
+        shutil.rmtree(p)
+    return p
+
+
+def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
+    from cmc.cameras import CameraError
+    from cmc.datasets import SceneError
+    from cmc.poses import PoseEstimationCancelled, PoseEstimationError, estimate_poses, poses_from_client
+
+    hb.set(status="estimating_poses", progress=0.0, eta_seconds=None, detail="estimating camera poses")
+    hb.flush()
+    scene_dir = _fresh_dir(ctx, f"{rec.id}/scene")
+    uploads = [ctx.storage.path(f"{rec.id}/uploads/{name}") for name in rec.upload_files]
+    common: dict[str, Any] = dict(
+        long_side=int(rec.options["resolution"]),
+        seed=int(rec.options["seed"]),
+        should_stop=hb.should_stop,
+        keep_originals=False,  # storage keeps the uploads
+        max_pixels=ctx.settings.max_image_pixels,
+        convention="opencv",
+    )
+    try:
+        if rec.has_cameras:
+            cameras = json.loads(ctx.storage.read_bytes(f"{rec.id}/uploads/cameras.json"))
+            result = poses_from_client(uploads, cameras, scene_dir, **common)
+        else:
+            result = estimate_poses(uploads, scene_dir, **common)
+    except PoseEstimationCancelled:
+        raise JobStopped(hb.reason or "cancelled") from None
+    except PoseEstimationError as e:
+        raise JobFailure("pose_estimation_failed", str(e)) from None
+    except CameraError as e:
+        raise JobFailure("invalid_cameras", str(e)) from None
+    except SceneError as e:
+        raise JobFailure("invalid_images", str(e)) from None
+    hb.check()
+    stats = {**rec.stats, "poses": {"timings_s": result.timings, **result.stats}}
+    waiting = dict(progress=0.0, eta_seconds=None, detail="waiting for a training worker", stats=stats)
+    if not ctx.store.advance(rec.id, ctx.worker_id, "train", "training", **waiting):
+        raise JobStopped("lease_lost")
+    submit_next(ctx, rec.id, "train")
+
+
+def submit_next(ctx: JobContext, scene_id: str, phase: Phase, tries: int = 3) -> None:
+    """Send the next phase; if the broker stays unreachable, the reaper re-sends it later
+    (the record already says which phase is next, so nothing is lost)."""
+    for k in range(tries):
+        try:
+            ctx.queue.submit(scene_id, phase)
+            return
+        except Exception:
+            log.warning("sending %s of %s failed (try %d of %d)", phase, scene_id, k + 1, tries, exc_info=True)
+            time.sleep(0.5 * 2**k)
+
+
+def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
+    import torch
+
+    from cmc.baking import bake
+    from cmc.config import preset_config
+    from cmc.datasets import SceneError, load_scene_folder
+    from cmc.training import Progress, Trainer, TrainingCancelled
+
+    s, opts = ctx.settings, rec.options
+    try:
+        scene = load_scene_folder(ctx.storage.path(f"{rec.id}/scene"))
+    except SceneError as e:
+        raise JobFailure("invalid_images", str(e)) from None
+    overrides: dict[str, Any] = {"seed": int(opts["seed"])}
+    if opts.get("steps"):
+        overrides["steps"] = int(opts["steps"])
+    if s.checkpoint_every:
+        overrides["checkpoint_every"] = s.checkpoint_every
+    cfg = preset_config(opts["preset"], **overrides)
+    device = s.device
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    trainer = Trainer(scene, cfg, device)
+    ckpt = ctx.storage.path(f"{rec.id}/checkpoint.pt")
+    resumed_from = 0
+    if ckpt.exists():
+        try:
+            trainer.load_checkpoint(ckpt)
+            resumed_from = trainer.step
+        except Exception:  # torn by an old crash or another configuration: start over
+            log.warning("job %s: unusable checkpoint, training from step 0", rec.id, exc_info=True)
+            ckpt.unlink(missing_ok=True)
+            trainer = Trainer(scene, cfg, device)
+    stats = {**rec.stats, "train": {"steps": cfg.steps, "device": str(device), "resumed_from_step": resumed_from}}
+    hb.set(
+        status="training",
+        progress=trainer.step / cfg.steps,
+        eta_seconds=None,
+        detail=f"training ({cfg.preset} preset, {cfg.steps} steps, {device})",
+        stats=stats,
+    )
+    hb.flush()
+    t0 = time.perf_counter()
+
+    def on_progress(p: Progress) -> None:
+        hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s, 1))
+
+    try:
+        trainer.fit(on_progress=on_progress, should_stop=hb.should_stop, checkpoint_path=ckpt, resume=False)
+    except TrainingCancelled:
+        raise JobStopped(hb.reason or "cancelled") from None
+    except FloatingPointError as e:
+        raise JobFailure("training_failed", str(e)) from None
+    train_s = time.perf_counter() - t0
+    hb.set(status="baking", progress=0.0, eta_seconds=None, detail="baking the MPIs")
+    hb.flush()
+    hb.check()
+    t0 = time.perf_counter()
+    tmp = _fresh_dir(ctx, f"{rec.id}/baked-tmp")
+    bake(trainer.model, tmp)
+    final = _fresh_dir(ctx, f"{rec.id}/baked")
+    os.replace(tmp, final)
+    stats["train"].update(seconds_this_attempt=round(train_s, 2), bake_seconds=round(time.perf_counter() - t0, 2))
+    ready = dict(progress=1.0, eta_seconds=0.0, detail=None, stats=stats)
+    if not ctx.store.advance(rec.id, ctx.worker_id, "done", "ready", **ready):
+        raise JobStopped("lease_lost")
+    ckpt.unlink(missing_ok=True)  # the baked MPI is the product; the checkpoint was for resuming
+
+
+def requeue_stale_jobs(ctx: JobContext) -> list[str]:
+    """Send again the jobs whose worker died (lease expired) or whose message was lost.
+    Safe to run from every worker at once: each job is re-sent by one of them."""
+    sent = []
+    for rec in ctx.store.stale_jobs(ctx.settings.requeue_after_seconds):
+        if ctx.store.requeue(rec, ctx.settings.max_attempts):
+            submit_next(ctx, rec.id, rec.phase)
+            sent.append(rec.id)
+            log.warning("job %s (%s) re-queued: its worker stopped answering", rec.id, rec.phase)
+    return sent
