@@ -1,0 +1,570 @@
+"""docker-compose.yml, docker/ and .env.example, checked without a Docker engine.
+
+Parses the compose file (PyYAML, with compose's ``${...}`` interpolation done here), the
+Dockerfiles and .env.example, and checks them against the code they start: every CMC_* variable
+is a field of service.settings.Settings, the commands name importable entry points, the Celery
+routes send each task to a queue that some worker consumes, the API and the workers share the
+artifact volume, the database and the broker, and the images install what pyproject.toml pins.
+When the ``docker compose`` plugin is installed, ``docker compose config`` validates the file too.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import importlib
+import json
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import tomllib
+from collections.abc import Iterator
+from pathlib import Path, PurePosixPath
+from typing import Any
+from urllib.parse import urlsplit
+
+import pytest
+import yaml
+
+from service.settings import Settings
+
+ROOT = Path(__file__).resolve().parents[1]
+COMPOSE = ROOT / "docker-compose.yml"
+ENV_EXAMPLE = ROOT / ".env.example"
+DOCKERFILES = {"cpu": ROOT / "docker" / "Dockerfile", "gpu": ROOT / "docker" / "Dockerfile.gpu"}
+APP_SERVICES = ("api", "worker-cpu", "worker-gpu")
+SECRETS = {"CMC_API_KEYS": "test-key-1,test-key-2", "POSTGRES_PASSWORD": "pw0123456789"}
+
+
+# -- compose's variable interpolation ----------------------------------------------------------
+
+
+class InterpolationError(ValueError):
+    """What compose reports for ``${VAR:?message}`` when VAR is unset or empty."""
+
+
+_SUBST = re.compile(
+    r"\$(?:(?P<escaped>\$)"
+    r"|\{(?P<braced>[A-Za-z_][A-Za-z0-9_]*)(?:(?P<op>:?[-?+])(?P<arg>[^}]*))?\}"
+    r"|(?P<named>[A-Za-z_][A-Za-z0-9_]*))"
+)
+
+
+def interpolate(value: Any, env: dict[str, str]) -> Any:
+    """Compose's substitution in every string of ``value``: $$, $VAR, ${VAR}, ${VAR:-default},
+    ${VAR-default}, ${VAR:?error}, ${VAR?error}, ${VAR:+alt}, ${VAR+alt}."""
+    if isinstance(value, dict):
+        return {k: interpolate(v, env) for k, v in value.items()}
+    if isinstance(value, list):
+        return [interpolate(v, env) for v in value]
+    if not isinstance(value, str):
+        return value
+
+    def sub(m: re.Match[str]) -> str:
+        if m["escaped"]:
+            return "$"
+        name = m["braced"] or m["named"]
+        op, arg = m["op"], m["arg"]
+        is_set = name in env
+        nonempty = bool(env.get(name))
+        if op in (":-", "-"):
+            use_default = not nonempty if op == ":-" else not is_set
+            return arg if use_default else env[name]
+        if op in (":?", "?"):
+            if not (nonempty if op == ":?" else is_set):
+                raise InterpolationError(f"{name}: {arg}")
+            return env[name]
+        if op in (":+", "+"):
+            return arg if (nonempty if op == ":+" else is_set) else ""
+        return env.get(name, "")
+
+    return _SUBST.sub(sub, value)
+
+
+def referenced_variables(text: str) -> set[str]:
+    """Names of the variables the compose text substitutes ($$ is an escape, not a variable)."""
+    names = set()
+    for m in _SUBST.finditer(text):
+        if not m["escaped"]:
+            names.add(m["braced"] or m["named"])
+    return names
+
+
+def read_env_file(path: Path) -> dict[str, str]:
+    env = {}
+    for line in path.read_text().splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        key, sep, value = line.partition("=")
+        assert sep, f"{path.name}: not KEY=VALUE: {line!r}"
+        value = value.strip()
+        if len(value) >= 2 and value[0] == value[-1] and value[0] in "'\"":
+            value = value[1:-1]
+        env[key.strip()] = value
+    return env
+
+
+def load_compose(env_file: bool = True, **overrides: str) -> dict[str, Any]:
+    """The compose file as `docker compose --env-file .env.example` sees it (or with no env file:
+    the file's own defaults), with ``overrides`` (the shell environment, which takes precedence
+    over the env file)."""
+    raw = yaml.safe_load(COMPOSE.read_text())
+    return interpolate(raw, {**(read_env_file(ENV_EXAMPLE) if env_file else {}), **overrides})
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict[str, Any]:
+    return load_compose(**SECRETS)
+
+
+@pytest.fixture(scope="module")
+def services(compose: dict[str, Any]) -> dict[str, Any]:
+    return compose["services"]
+
+
+def environment(service: dict[str, Any]) -> dict[str, str]:
+    env = service.get("environment", {})
+    if isinstance(env, list):
+        env = dict(item.split("=", 1) for item in env)
+    return {k: "" if v is None else str(v) for k, v in env.items()}
+
+
+def command(service: dict[str, Any]) -> list[str]:
+    cmd = service["command"]
+    return shlex.split(cmd) if isinstance(cmd, str) else [str(c) for c in cmd]
+
+
+def option(cmd: list[str], *names: str) -> list[str]:
+    """Every value given to one of the options ``names`` (``-Q cpu`` or ``--queues=cpu``)."""
+    values = []
+    for i, arg in enumerate(cmd):
+        for name in names:
+            if arg == name and i + 1 < len(cmd):
+                values.append(cmd[i + 1])
+            elif name.startswith("--") and arg.startswith(name + "="):
+                values.append(arg.split("=", 1)[1])
+    return values
+
+
+def healthcheck_shell(service: dict[str, Any]) -> str:
+    test = service["healthcheck"]["test"]
+    if isinstance(test, str):
+        return test
+    kind, *rest = test
+    assert kind in ("CMD", "CMD-SHELL"), test
+    return " ".join(rest) if kind == "CMD-SHELL" else shlex.join(rest)
+
+
+def worker_queues(service: dict[str, Any]) -> set[str]:
+    return {q for v in option(command(service), "-Q", "--queues") for q in v.split(",")}
+
+
+# -- Dockerfiles -------------------------------------------------------------------------------
+
+
+def dockerfile_instructions(path: Path) -> list[tuple[str, str]]:
+    """(INSTRUCTION, arguments) in order, continuation lines joined, comments dropped."""
+    out, buf = [], ""
+    for line in path.read_text().splitlines():
+        if line.lstrip().startswith("#"):
+            continue
+        if line.rstrip().endswith("\\"):
+            buf += line.rstrip()[:-1]
+            continue
+        buf += line
+        if buf.strip():
+            word, _, rest = buf.strip().partition(" ")
+            out.append((word.upper(), rest.strip()))
+        buf = ""
+    return out
+
+
+def dockerfile_args(path: Path) -> dict[str, str]:
+    args = {}
+    for ins, rest in dockerfile_instructions(path):
+        if ins == "ARG":
+            name, _, default = rest.partition("=")
+            args[name] = default.strip('"')
+    return args
+
+
+def pyproject() -> dict[str, Any]:
+    return tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+
+
+def torch_pin() -> str:
+    pins = [d for d in pyproject()["dependencies"] if re.match(r"torch\s*==", d)]
+    assert len(pins) == 1, pins
+    return pins[0].replace(" ", "")
+
+
+# -- the services ------------------------------------------------------------------------------
+
+
+def test_services_exist(services: dict[str, Any]) -> None:
+    assert {"redis", "db", "api", "worker-cpu", "worker-gpu"} <= set(services)
+
+
+def test_every_variable_compose_reads_is_in_env_example_and_back() -> None:
+    used = referenced_variables(COMPOSE.read_text())
+    listed = set(read_env_file(ENV_EXAMPLE))
+    assert used - listed == set(), "compose reads variables .env.example does not list"
+    assert listed - used == set(), ".env.example lists variables compose never reads"
+
+
+def test_every_cmc_variable_is_a_settings_field(services: dict[str, Any]) -> None:
+    fields = {"CMC_" + name.upper() for name in Settings.model_fields}
+    names = {k for s in services.values() for k in environment(s) if k.startswith("CMC_")}
+    names |= {k for k in read_env_file(ENV_EXAMPLE) if k.startswith("CMC_")}
+    assert names, "no CMC_* variable found"
+    assert names - fields == set(), f"not fields of service.settings.Settings: {sorted(names - fields)}"
+
+
+@pytest.mark.parametrize("missing", sorted(SECRETS))
+def test_compose_refuses_to_start_without_secrets(missing: str) -> None:
+    # .env.example leaves the secrets empty: a copied, unedited .env must not start anything
+    assert read_env_file(ENV_EXAMPLE)[missing] == ""
+    others = {k: v for k, v in SECRETS.items() if k != missing}
+    with pytest.raises(InterpolationError, match=missing):
+        load_compose(**others)
+    with pytest.raises(InterpolationError, match=missing):
+        load_compose(**others, **{missing: ""})
+
+
+def test_api_keys_only_where_needed(services: dict[str, Any]) -> None:
+    assert environment(services["api"])["CMC_API_KEYS"] == SECRETS["CMC_API_KEYS"]
+    for name in ("worker-cpu", "worker-gpu"):
+        assert "CMC_API_KEYS" not in environment(services[name])
+
+
+@pytest.mark.parametrize("env_file", [True, False], ids=["env-example", "defaults"])
+@pytest.mark.parametrize("name", APP_SERVICES)
+def test_settings_validate(monkeypatch: pytest.MonkeyPatch, name: str, env_file: bool) -> None:
+    """The service's environment (from .env.example, or from the compose file's defaults alone),
+    read by Settings exactly as at start: types and checks pass."""
+    service = load_compose(env_file, **SECRETS)["services"][name]
+    for key in list(os.environ):
+        if key.startswith("CMC_"):
+            monkeypatch.delenv(key)
+    for key, value in environment(service).items():
+        monkeypatch.setenv(key, value)
+    from service.settings import load_settings
+
+    s = load_settings()
+    assert s.mode == "celery", "jobs would run inside the API process"
+    assert s.broker_url and s.database_url
+
+
+def test_api_command_names_a_factory(services: dict[str, Any]) -> None:
+    cmd = command(services["api"])
+    assert cmd[0] == "uvicorn"
+    assert "--factory" in cmd
+    targets = [a for a in cmd[1:] if ":" in a and not a.startswith("-")]
+    assert len(targets) == 1, cmd
+    module, attr = targets[0].split(":")
+    factory = getattr(importlib.import_module(module), attr)
+    assert callable(factory)
+    assert option(cmd, "--host") == ["0.0.0.0"], "the API must listen on the container's interfaces"
+    port = option(cmd, "--port")
+    assert len(port) == 1
+    published = [str(p).rsplit(":", 1)[-1] for p in services["api"]["ports"]]
+    assert published == port, "the published container port is not the one uvicorn listens on"
+    assert f"127.0.0.1:{port[0]}/readyz" in healthcheck_shell(services["api"])
+
+
+@pytest.mark.parametrize("name,queue_field", [("worker-cpu", "cpu_queue"), ("worker-gpu", "gpu_queue")])
+def test_worker_commands(services: dict[str, Any], name: str, queue_field: str) -> None:
+    cmd = command(services[name])
+    assert cmd[:3] == ["celery", "-A", "worker.celery_app"] and cmd[3] == "worker", cmd
+    assert option(cmd, "-c", "--concurrency") == ["1"]
+    assert option(cmd, "--prefetch-multiplier") == ["1"]
+    # Celery's hard time limits need the prefork pool (the default)
+    assert option(cmd, "-P", "--pool") in ([], ["prefork"])
+    queue = environment(services[name]).get("CMC_" + queue_field.upper(), Settings.model_fields[queue_field].default)
+    assert worker_queues(services[name]) == {queue}
+
+
+_CELERY_PROBE = """
+import json, sys
+import worker.celery_app as m
+from service.settings import Settings
+others = json.loads(sys.argv[1])
+print(json.dumps({
+    "tasks": sorted(t for t in m.app.tasks if not t.startswith("celery.")),
+    "routes": m.app.conf.task_routes,
+    "other_routes": {name: m.create_celery(Settings(**fields)).conf.task_routes for name, fields in others.items()},
+}))
+"""
+
+
+def _settings_fields(env: dict[str, str]) -> dict[str, str]:
+    return {k[4:].lower(): v for k, v in env.items() if k.startswith("CMC_")}
+
+
+PROBED_WORKERS = ["worker-cpu", "worker-gpu"]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def celery_probe(services: dict[str, Any], tmp_path_factory: pytest.TempPathFactory) -> Iterator[subprocess.Popen[str]]:
+    """Import worker.celery_app with the first worker's compose environment, in a child process
+    (the module reads its settings at import and registers shared Celery tasks, which must not
+    leak into this test process), and build the other workers' apps with the module's own
+    create_celery. Started once, before the first test, so that it runs beside the others.
+    Broker, database and folders point at nothing that is used: building a Celery app connects
+    to nothing."""
+    tmp = tmp_path_factory.mktemp("celery-probe")
+    unused = dict(broker_url="redis://127.0.0.1:6379/15", database_url=f"sqlite:///{tmp / 'unused.db'}")
+    unused.update(data_dir=str(tmp), storage_dir=str(tmp / "storage"))
+    child_env = {k: v for k, v in os.environ.items() if not k.startswith("CMC_")}
+    child_env.update(environment(services[PROBED_WORKERS[0]]))
+    child_env.update({"CMC_" + k.upper(): v for k, v in unused.items()})
+    others = {w: {**_settings_fields(environment(services[w])), **unused} for w in PROBED_WORKERS[1:]}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _CELERY_PROBE, json.dumps(others)],
+        cwd=ROOT,
+        env=child_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    yield proc
+    if proc.poll() is None:
+        proc.kill()
+        proc.communicate()
+
+
+def test_celery_routes_reach_the_workers(services: dict[str, Any], celery_probe: subprocess.Popen[str]) -> None:
+    from service.jobs import TASK_NAMES, CeleryJobQueue
+
+    out, err = celery_probe.communicate(timeout=60)
+    assert celery_probe.returncode == 0, err
+    probe = json.loads(out)
+    routes = {PROBED_WORKERS[0]: probe["routes"], **probe["other_routes"]}
+    consumer = {"poses": "worker-cpu", "train": "worker-gpu"}
+    assert set(consumer) == set(TASK_NAMES)
+    api = Settings(**_settings_fields(environment(services["api"])))
+    for phase, task in TASK_NAMES.items():
+        assert task in probe["tasks"], f"{task} is not registered by worker.celery_app"
+        worker = consumer[phase]
+        queue = routes[worker][task]["queue"]
+        assert queue in worker_queues(services[worker]), f"{task} is routed to {queue!r}; {worker} consumes others"
+        # the API sends tasks by name to the queues its own settings name: the same ones
+        assert CeleryJobQueue(api.broker_url, api.cpu_queue, api.gpu_queue).queues[phase] == queue
+
+
+@pytest.mark.parametrize("name,node", [("worker-cpu", "cpu"), ("worker-gpu", "gpu")])
+def test_worker_healthcheck_pings_its_own_node(services: dict[str, Any], name: str, node: str) -> None:
+    names = option(command(services[name]), "-n", "--hostname")
+    assert names == [f"{node}@%h"]
+    test = services[name]["healthcheck"]["test"]
+    assert test[0] == "CMD-SHELL", "$HOSTNAME needs a shell"
+    shell = healthcheck_shell(services[name])
+    assert "celery -A worker.celery_app inspect ping" in shell
+    # %h is the container's hostname, which the shell has as $HOSTNAME ($$ in the compose file)
+    assert option(shlex.split(shell), "-d", "--destination") == [names[0].replace("%h", "$HOSTNAME")]
+    assert f"{node}@$$HOSTNAME" in COMPOSE.read_text()
+
+
+def test_artifact_volume_shared(compose: dict[str, Any], services: dict[str, Any]) -> None:
+    mounts = {}
+    for name in APP_SERVICES:
+        named = []
+        for v in services[name].get("volumes", []):
+            source, target = v.split(":")[:2] if isinstance(v, str) else (v["source"], v["target"])
+            if source in (compose.get("volumes") or {}):
+                named.append((source, target))
+        assert len(named) == 1, f"{name}: expected one named volume, got {named}"
+        mounts[name] = named[0]
+    assert len(set(mounts.values())) == 1, f"not the same volume at the same path: {mounts}"
+    source, target = next(iter(mounts.values()))
+    for name in APP_SERVICES:
+        env = environment(services[name])
+        for key in ("CMC_STORAGE_DIR", "CMC_DATA_DIR"):
+            assert PurePosixPath(env[key]).is_relative_to(target), f"{name}: {key}={env[key]} is outside {target}"
+    # a new named volume takes the owner of the image's folder: the images must make it theirs
+    for path in DOCKERFILES.values():
+        runs = " ".join(rest for ins, rest in dockerfile_instructions(path) if ins == "RUN")
+        assert re.search(rf"mkdir -p {re.escape(target)}\b", runs), f"{path.name} does not create {target}"
+        assert re.search(rf"chown \S+ {re.escape(target)}\b", runs), f"{path.name} does not chown {target}"
+
+
+def test_api_and_workers_share_database_and_broker(services: dict[str, Any]) -> None:
+    from sqlalchemy.engine import make_url
+
+    db_urls = {environment(services[n])["CMC_DATABASE_URL"] for n in APP_SERVICES}
+    broker_urls = {environment(services[n])["CMC_BROKER_URL"] for n in APP_SERVICES}
+    assert len(db_urls) == 1 and len(broker_urls) == 1
+    url = make_url(db_urls.pop())
+    pg = environment(services["db"])
+    assert url.drivername == "postgresql+psycopg"
+    assert (url.host, url.port or 5432) == ("db", 5432)
+    assert url.username == pg["POSTGRES_USER"] and url.database == pg["POSTGRES_DB"]
+    assert url.password == pg["POSTGRES_PASSWORD"] == SECRETS["POSTGRES_PASSWORD"]
+    broker = urlsplit(broker_urls.pop())
+    assert broker.scheme == "redis" and broker.hostname == "redis" and (broker.port or 6379) == 6379
+
+
+def test_database_and_redis(services: dict[str, Any], compose: dict[str, Any]) -> None:
+    assert re.fullmatch(r"postgres:16(\.\d+)*(-\w+)?", services["db"]["image"])
+    assert re.fullmatch(r"redis:7(\.\d+)*(-\w+)?", services["redis"]["image"])
+    redis_cmd = command(services["redis"])
+    assert option(redis_cmd, "--appendonly") == ["yes"], "queued jobs would not survive a Redis restart"
+    named = compose.get("volumes") or {}
+    for name, path in (("db", "/var/lib/postgresql/data"), ("redis", "/data")):
+        vols = [v.split(":") for v in services[name]["volumes"]]
+        assert any(src in named and dst == path for src, dst, *_ in vols), f"{name}: no named volume at {path}"
+
+
+def test_healthchecks_and_dependencies(services: dict[str, Any]) -> None:
+    for name in ("redis", "db", *APP_SERVICES):
+        hc = services[name].get("healthcheck")
+        assert hc and not hc.get("disable") and hc["test"] not in (["NONE"], "NONE"), f"{name}: no health check"
+    assert "pg_isready" in healthcheck_shell(services["db"])
+    assert "redis-cli ping" in healthcheck_shell(services["redis"])
+    assert "/readyz" in healthcheck_shell(services["api"])
+    for name in APP_SERVICES:
+        deps = services[name]["depends_on"]
+        assert isinstance(deps, dict), f"{name}: depends_on without conditions"
+        for dep in ("db", "redis"):
+            assert deps[dep]["condition"] == "service_healthy", f"{name} does not wait for {dep}"
+        assert all(d["condition"] == "service_healthy" for d in deps.values())
+
+
+def test_gpu_worker(services: dict[str, Any]) -> None:
+    gpu = services["worker-gpu"]
+    devices = gpu["deploy"]["resources"]["reservations"]["devices"]
+    assert any(
+        d.get("driver") == "nvidia" and "gpu" in d.get("capabilities", []) and (d.get("count") or d.get("device_ids"))
+        for d in devices
+    ), devices
+    assert PurePosixPath(gpu["build"]["dockerfile"]) == PurePosixPath("docker/Dockerfile.gpu")
+    assert environment(gpu)["CMC_DEVICE"].startswith("cuda")
+    # the build arguments compose passes exist in the Dockerfile, with the same defaults
+    args = dockerfile_args(DOCKERFILES["gpu"])
+    defaults = load_compose(**SECRETS, GPU_CUDA_IMAGE="", GPU_TORCH_INDEX_URL="")["services"]["worker-gpu"]
+    for key in gpu["build"].get("args", {}):
+        assert key in args, f"Dockerfile.gpu has no ARG {key}"
+        assert defaults["build"]["args"][key] == args[key], f"{key}: compose and Dockerfile.gpu defaults differ"
+    # the wheel index and the base image name the same CUDA major.minor (cu130 <-> 13.0.x), in
+    # the Dockerfile's defaults and in .env.example
+    example = read_env_file(ENV_EXAMPLE)
+    for cuda, index in (
+        (args["CUDA_IMAGE"], args["TORCH_INDEX_URL"]),
+        (example["GPU_CUDA_IMAGE"], example["GPU_TORCH_INDEX_URL"]),
+    ):
+        m = re.search(r"/whl/cu(\d+)(\d)$", index)
+        assert m and re.match(rf"nvidia/cuda:{m[1]}\.{m[2]}\.\d+-\w+", cuda), (cuda, index)
+
+
+def test_cpu_services_use_the_cpu_image(services: dict[str, Any]) -> None:
+    for name in ("api", "worker-cpu"):
+        assert PurePosixPath(services[name]["build"]["dockerfile"]) == PurePosixPath("docker/Dockerfile")
+    assert services["api"]["image"] == services["worker-cpu"]["image"] != services["worker-gpu"]["image"]
+
+
+# -- the images --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", sorted(DOCKERFILES))
+def test_dockerfile(kind: str) -> None:
+    path = DOCKERFILES[kind]
+    ins = dockerfile_instructions(path)
+    ignored = [p for p in (ROOT / ".dockerignore").read_text().splitlines() if p and not p.startswith(("#", "!"))]
+    copied = set()
+    for word, rest in ins:
+        if word in ("COPY", "ADD"):
+            parts = [p for p in shlex.split(rest) if not p.startswith("--")]
+            if any(p.startswith("--from") for p in shlex.split(rest)):
+                continue
+            for src in parts[:-1]:
+                name = src.rstrip("/")
+                assert (ROOT / name).exists(), f"{path.name}: COPY {src}: not in the repository"
+                assert not any(fnmatch.fnmatch(name, pat.rstrip("/")) for pat in ignored), f".dockerignore drops {src}"
+                copied.add(name)
+    assert {"pyproject.toml", "cmc", "service", "worker"} <= copied
+    assert ("WORKDIR", "/app") in ins
+    users = [rest for word, rest in ins if word == "USER"]
+    assert users and users[-1] not in ("root", "0"), "runs as root"
+    # torch first, from the wheel index, pinned like pyproject.toml; then the other dependencies
+    runs = [(i, rest) for i, (word, rest) in enumerate(ins) if word == "RUN"]
+    torch_runs = [i for i, r in runs if re.search(r"pip install\b.*\btorch==", r)]
+    assert torch_runs, f"{path.name}: torch is not installed on its own"
+    for i in torch_runs:
+        assert re.search(r"torch==[\w.+]+", ins[i][1])[0] == torch_pin()
+        assert "--index-url" in ins[i][1]
+    deps_run = next(i for i, r in runs if "tomllib" in r)
+    source_copy = next(i for i, (word, rest) in enumerate(ins) if word == "COPY" and rest.startswith("cmc"))
+    assert max(torch_runs) < deps_run < source_copy, "dependencies must install before the code is copied"
+    # and nothing but pyproject.toml is copied before them, or any edit reinstalls everything
+    early = [rest for word, rest in ins[:deps_run] if word in ("COPY", "ADD") and "--from" not in rest]
+    assert [shlex.split(rest)[:-1] for rest in early] == [["pyproject.toml"]], early
+
+
+def test_dockerfiles_share_uid_and_python() -> None:
+    uids = set()
+    for path in DOCKERFILES.values():
+        m = re.search(r"useradd\b[^&]*--uid (\d+)", path.read_text())
+        assert m, f"{path.name}: no useradd --uid"
+        user = [rest for word, rest in dockerfile_instructions(path) if word == "USER"][-1]
+        assert user.split(":")[0] == m[1], f"{path.name}: USER {user} is not the uid it creates ({m[1]})"
+        uids.add(m[1])
+    assert len(uids) == 1, "the artifact volume's files must be writable by every service"
+    want = re.search(r">=\s*(3\.\d+)", pyproject()["requires-python"])[1]
+    froms = [rest for word, rest in dockerfile_instructions(DOCKERFILES["cpu"]) if word == "FROM"]
+    assert froms[-1].startswith(f"python:{want}-")
+    assert f"uv python install {want}" in DOCKERFILES["gpu"].read_text()
+
+
+@pytest.mark.parametrize("kind", sorted(DOCKERFILES))
+def test_dependency_layer_installs_pyproject(kind: str) -> None:
+    """Run the Dockerfile's own requirements-extraction command on this pyproject.toml."""
+    path = DOCKERFILES[kind]
+    run = next(rest for word, rest in dockerfile_instructions(path) if word == "RUN" and "tomllib" in rest)
+    script = run.split(">", 1)[0].strip()
+    assert script.startswith("python -c ")
+    script = shlex.quote(sys.executable) + script[len("python") :]
+    extras = dockerfile_args(path)["EXTRAS"]
+    out = subprocess.run(
+        ["sh", "-c", script],
+        cwd=ROOT,
+        env={**os.environ, "EXTRAS": extras},
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=True,
+    ).stdout.split()
+    project = pyproject()
+    want = project["dependencies"] + [d for e in extras.split() for d in project["optional-dependencies"][e]]
+    assert out == [d.replace(" ", "") for d in want]
+    assert torch_pin() in out
+
+
+def test_dockerignore_keeps_secrets_and_clutter_out() -> None:
+    patterns = {p.strip().rstrip("/") for p in (ROOT / ".dockerignore").read_text().splitlines()}
+    assert {".env", ".venv", ".git", "tests"} <= patterns
+
+
+# -- docker compose itself, where the plugin is installed --------------------------------------
+
+
+def _compose_plugin() -> bool:
+    if not shutil.which("docker"):
+        return False
+    r = subprocess.run(["docker", "compose", "version"], capture_output=True, timeout=20)
+    return r.returncode == 0
+
+
+def test_docker_compose_config_validates() -> None:
+    if not _compose_plugin():
+        pytest.skip("the docker compose plugin is not installed here")
+    base = [k for k in os.environ if k not in SECRETS and k not in read_env_file(ENV_EXAMPLE)]
+    env = {k: os.environ[k] for k in base}
+    args = ["docker", "compose", "-f", str(COMPOSE), "--env-file", str(ENV_EXAMPLE), "config", "-q"]
+    ok = subprocess.run(args, cwd=ROOT, env={**env, **SECRETS}, capture_output=True, text=True, timeout=60)
+    assert ok.returncode == 0, ok.stderr
+    no_keys = {**env, "POSTGRES_PASSWORD": SECRETS["POSTGRES_PASSWORD"]}
+    refused = subprocess.run(args, cwd=ROOT, env=no_keys, capture_output=True, text=True, timeout=60)
+    assert refused.returncode != 0 and "CMC_API_KEYS" in refused.stderr + refused.stdout
