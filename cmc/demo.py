@@ -14,7 +14,7 @@ import numpy as np
 from PIL import Image
 
 from cmc.baking import BakedScene, bake
-from cmc.cameras import Cameras
+from cmc.camera_paths import orbit_poses
 from cmc.config import preset_config
 from cmc.datasets import (
     DEFAULT_LAYERS,
@@ -26,22 +26,6 @@ from cmc.datasets import (
 )
 from cmc.metrics import psnr
 from cmc.training import Progress, Trainer
-
-
-def orbit_poses(cameras: Cameras, num_frames: int, radius_fraction: float = 0.5) -> np.ndarray:
-    """[F, 4, 4] poses on a circle around the mean input camera, in its image plane, with the
-    radius a fraction of the input baseline; orientation is the mean camera's."""
-    centers = cameras.centers
-    mean = np.eye(4)
-    mean[:3, :3] = cameras.world_from_cam[len(cameras) // 2, :3, :3]
-    mean[:3, 3] = centers.mean(0)
-    r = radius_fraction * np.linalg.norm(centers.max(0) - centers.min(0)) / 2
-    poses = []
-    for a in np.linspace(0, 2 * np.pi, num_frames, endpoint=False):
-        p = mean.copy()
-        p[:3, 3] += mean[:3, :3] @ np.array([r * np.cos(a), r * np.sin(a), 0.0])
-        poses.append(p)
-    return np.stack(poses)
 
 
 def depth_preview(depth: np.ndarray, near: float, far: float) -> np.ndarray:
