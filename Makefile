@@ -14,7 +14,12 @@ install: $(VENV)/.installed
 demo: install  ## reconstruct a synthetic scene from 3 views on the CPU; outputs in demo-output/
 	$(VENV)/bin/cmc demo --out demo-output
 
-test: install  ## the whole test suite (what CI runs)
+chromium:  ## Debian's chromium for the viewer tests (apt-get, as root); without it they skip, except under CI
+	@command -v chromium >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; } || \
+		echo "chromium is not installed: the viewer tests will be skipped"
+
+test: install chromium  ## the whole test suite (what CI runs)
 	$(VENV)/bin/ruff check cmc service worker tests bench
 	CMC_SHARED_DIR=$(SHARED) $(VENV)/bin/python -m pytest -q
 
@@ -23,4 +28,4 @@ bench-fern: install  ## LLFF fern, fast preset, CPU (about 5 minutes), then rege
 		--scenes fern --preset fast --out bench/fern_fast_cpu.json --save-dir bench/runs
 	$(VENV)/bin/python bench/make_results.py
 
-.PHONY: install demo test bench-fern
+.PHONY: install chromium demo test bench-fern

@@ -5,14 +5,17 @@ from __future__ import annotations
 import base64
 import json
 import logging
+import time
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from functools import cache
+from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import FileResponse, JSONResponse
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.auth import KeyRing
@@ -27,9 +30,19 @@ from service.renders import (
     encode_depth_preview,
     encode_image,
 )
-from service.schemas import ErrorBody, Health, JobError, RenderCamera, SceneLinks, SceneList, SceneOptions, SceneOut
+from service.schemas import (
+    ErrorBody,
+    Health,
+    JobError,
+    RenderCamera,
+    SceneLinks,
+    SceneList,
+    SceneOptions,
+    SceneOut,
+    VideoBuilding,
+)
 from service.settings import Settings
-from service.storage import Storage
+from service.storage import Storage, video_keys
 from service.store import IdempotencyConflict, SceneRecord, SceneStore
 from service.uploads import check_images, parse_cameras, parse_options, receive_upload
 
@@ -440,6 +453,58 @@ def get_mpi_file(scene_id: SceneId, name: str, svc: Svc, owner: Owner) -> Respon
     if name not in atlases:  # only names the manifest lists; never a client-built path
         raise not_found("file")
     return FileResponse(svc.storage.path(f"{scene_id}/baked/{name}"), media_type="image/png")
+
+
+VIDEO_RESEND_AFTER_S = 600  # a build whose state was not updated for this long died: send it again
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/video",
+    responses={
+        **ERRORS_READY,
+        200: {"content": {"video/mp4": {}}, "description": "H.264 MP4 of the camera path"},
+        202: {"model": VideoBuilding, "description": "being rendered: ask again after Retry-After seconds"},
+        500: {"model": ErrorBody, "description": "rendering failed (code video_failed); asking again retries"},
+    },
+    response_class=Response,
+    summary="A camera-path video (spiral, orbit or dolly through the capture), built once and cached",
+)
+def get_video(
+    scene_id: SceneId,
+    svc: Svc,
+    owner: Owner,
+    path: Literal["spiral", "orbit", "dolly"] = "spiral",
+) -> Response:
+    _ready_scene(svc, scene_id, owner)
+    mp4, state_key = video_keys(scene_id, path)
+    if svc.storage.exists(mp4):
+        return FileResponse(svc.storage.path(mp4), media_type="video/mp4", headers={"Cache-Control": "private"})
+    state = json.loads(svc.storage.read_bytes(state_key)) if svc.storage.exists(state_key) else None
+    if state is not None and "error" in state:
+        svc.storage.path(state_key).unlink(missing_ok=True)  # the next request tries again
+        raise APIError(500, "video_failed", f"rendering the {path} video failed: {state['error']}")
+    if state is None or time.time() - state["updated_at"] > VIDEO_RESEND_AFTER_S:
+        state = {"progress": 0.0, "updated_at": time.time()}
+        svc.storage.write_bytes(state_key, json.dumps(state).encode())
+        svc.queue.submit_video(scene_id, path)
+    body = VideoBuilding(progress=round(float(state["progress"]), 3))
+    return JSONResponse(body.model_dump(), status_code=202, headers={"Retry-After": "5"})
+
+
+@cache
+def _viewer_html() -> str:
+    return (Path(__file__).resolve().parent / "static" / "viewer.html").read_text()
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/viewer",
+    response_class=HTMLResponse,
+    summary="The WebGL2 viewer page (holds no data and needs no key; give one as #key=... in the URL)",
+)
+def viewer(scene_id: SceneId) -> Response:
+    del scene_id  # the page reads it from its own URL
+    csp = "default-src 'none'; script-src 'unsafe-inline'; style-src 'unsafe-inline'; connect-src 'self'; img-src data:"
+    return HTMLResponse(_viewer_html(), headers={"Content-Security-Policy": csp, "Cache-Control": "no-cache"})
 
 
 # -- operations -------------------------------------------------------------------------------------

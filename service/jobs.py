@@ -1,9 +1,9 @@
 """Sending jobs to workers: one small interface, a Celery implementation.
 
 The API never imports worker code: Celery tasks are sent *by name* (``cmc.poses`` on the CPU
-queue, ``cmc.train`` on the GPU queue) with the scene id as the only argument; the database
-holds everything else. The embedded runner (``worker.embedded``) implements the same
-interface in-process for ``cmc serve``.
+queue, ``cmc.train`` and ``cmc.video`` on the GPU queue) with the scene id (and the video's path
+kind) as arguments; the database and storage hold everything else. The embedded runner
+(``worker.embedded``) implements the same interface in-process for ``cmc serve``.
 """
 
 from __future__ import annotations
@@ -12,12 +12,16 @@ from typing import Protocol
 
 from service.store import Phase
 
-TASK_NAMES: dict[str, str] = {"poses": "cmc.poses", "train": "cmc.train"}
+TASK_NAMES: dict[str, str] = {"poses": "cmc.poses", "train": "cmc.train", "video": "cmc.video"}
 
 
 class JobQueue(Protocol):
     def submit(self, scene_id: str, phase: Phase) -> None:
         """Ask a worker to run ``phase`` of the scene's job (duplicates are harmless)."""
+        ...
+
+    def submit_video(self, scene_id: str, path: str) -> None:
+        """Ask a worker to render the camera-path video ``path`` of a ready scene."""
         ...
 
     def depth(self) -> dict[str, int]:
@@ -43,6 +47,9 @@ class CeleryJobQueue:
 
     def submit(self, scene_id: str, phase: Phase) -> None:
         self.app.send_task(TASK_NAMES[phase], args=[scene_id], queue=self.queues[phase])
+
+    def submit_video(self, scene_id: str, path: str) -> None:
+        self.app.send_task(TASK_NAMES["video"], args=[scene_id, path], queue=self.queues["train"])
 
     def _redis(self):
         import redis

@@ -89,3 +89,8 @@ class RenderCamera(BaseModel):
 class Health(BaseModel):
     status: str
     checks: dict[str, str] = Field(default_factory=dict)
+
+
+class VideoBuilding(BaseModel):
+    status: Literal["building"] = "building"
+    progress: float = Field(description="frames rendered so far, 0-1")

@@ -39,6 +39,9 @@ class RecordingQueue:
     def depth(self) -> dict[str, int]:
         return {"recorded": len(self.sent)}
 
+    def submit_video(self, scene_id: str, path: str) -> None:
+        self.sent.append((scene_id, f"video {path}"))
+
     def ping(self) -> None:
         pass
 
@@ -162,6 +165,33 @@ def test_baked_mpi_files(ready) -> None:
     assert atlas.status_code == 200 and Image.open(io.BytesIO(atlas.content)).mode == "RGBA"
     for name in ("cameras.json", "..%2Fscene%2Fcameras.json", "mpi_99.png"):
         assert client.get(f"/v1/scenes/{sid}/mpi/{name}").status_code == 404
+
+
+def test_video_is_built_by_the_runner_once_then_served_from_storage(ready) -> None:
+    client, sid, _, _ = ready
+    first = client.get(f"/v1/scenes/{sid}/video?path=orbit")
+    assert first.status_code == 202 and first.json()["status"] == "building" and first.headers["retry-after"] == "5"
+    t0 = time.time()
+    while (r := client.get(f"/v1/scenes/{sid}/video?path=orbit")).status_code == 202:
+        assert 0 <= r.json()["progress"] <= 1
+        assert time.time() - t0 < 180
+        time.sleep(0.5)
+    assert r.status_code == 200 and r.headers["content-type"] == "video/mp4"
+    assert r.content[4:8] == b"ftyp" and len(r.content) > 1000
+    mp4 = client.app.state.services.storage.path(f"{sid}/videos/orbit.mp4")
+    assert mp4.exists() and not mp4.with_suffix(".json").exists()
+    built_at = mp4.stat().st_mtime
+    again = client.get(f"/v1/scenes/{sid}/video?path=orbit")
+    assert again.content == r.content and mp4.stat().st_mtime == built_at  # cached, not rebuilt
+    assert client.get(f"/v1/scenes/{sid}/video?path=zoom").status_code == 422
+
+
+def test_viewer_page_needs_no_key(api) -> None:
+    client = api(api_keys="secret")
+    r = client.get("/v1/scenes/0123456789abcdef0123456789abcdef/viewer")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+    assert "webgl2" in r.text and "script-src 'unsafe-inline'" in r.headers["content-security-policy"]
+    assert client.get("/v1/scenes/0123456789abcdef0123456789abcdef").status_code == 401
 
 
 def test_operations_endpoints(ready) -> None:

@@ -22,7 +22,7 @@ from service.jobs import TASK_NAMES, CeleryJobQueue
 from service.settings import Settings, load_settings
 from service.storage import LocalStorage
 from service.store import SceneStore
-from worker.pipeline import JobContext, requeue_stale_jobs, run_job
+from worker.pipeline import JobContext, requeue_stale_jobs, run_job, run_video
 
 log = logging.getLogger("cmc.worker")
 
@@ -39,6 +39,7 @@ def create_celery(settings: Settings) -> Celery:
         task_routes={
             TASK_NAMES["poses"]: {"queue": settings.cpu_queue},
             TASK_NAMES["train"]: {"queue": settings.gpu_queue},
+            TASK_NAMES["video"]: {"queue": settings.gpu_queue},
         },
         task_default_queue=settings.cpu_queue,
         task_ignore_result=True,
@@ -71,6 +72,11 @@ def poses_task(scene_id: str) -> str:
 @app.task(name=TASK_NAMES["train"], time_limit=settings.train_time_limit + 300)
 def train_task(scene_id: str) -> str:
     return run_job(context(), scene_id, "train")
+
+
+@app.task(name=TASK_NAMES["video"], time_limit=3600)
+def video_task(scene_id: str, path: str) -> str:
+    return run_video(context(), scene_id, path)
 
 
 def _reaper(stop: threading.Event) -> None:

@@ -13,11 +13,12 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+from collections.abc import Callable
 
 from service.settings import Settings
 from service.storage import Storage
 from service.store import Phase, SceneStore
-from worker.pipeline import JobContext, run_job
+from worker.pipeline import JobContext, run_job, run_video
 
 log = logging.getLogger("cmc.worker")
 
@@ -25,13 +26,16 @@ log = logging.getLogger("cmc.worker")
 class EmbeddedRunner:
     def __init__(self, store: SceneStore, storage: Storage, settings: Settings):
         self.ctx = JobContext(store, storage, self, settings)
-        self._jobs: queue.Queue[tuple[str, Phase] | None] = queue.Queue()
+        self._jobs: queue.Queue[tuple[str, Callable[[], object]] | None] = queue.Queue()
         self._thread = threading.Thread(target=self._loop, name="cmc-embedded-runner", daemon=True)
 
     # -- JobQueue ------------------------------------------------------------------------------
 
     def submit(self, scene_id: str, phase: Phase) -> None:
-        self._jobs.put((scene_id, phase))
+        self._jobs.put((f"{scene_id} {phase}", lambda: run_job(self.ctx, scene_id, phase)))
+
+    def submit_video(self, scene_id: str, path: str) -> None:
+        self._jobs.put((f"{scene_id} video {path}", lambda: run_video(self.ctx, scene_id, path)))
 
     def depth(self) -> dict[str, int]:
         return {"embedded": self._jobs.qsize()}
@@ -63,7 +67,8 @@ class EmbeddedRunner:
             item = self._jobs.get()
             if item is None or self.ctx.shutdown.is_set():
                 return
+            name, work = item
             try:
-                run_job(self.ctx, *item)
+                work()
             except Exception:  # never let one job end the runner (e.g. the database blinked)
-                log.exception("job %s phase %s: runner error", *item)
+                log.exception("job %s: runner error", name)

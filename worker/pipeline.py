@@ -32,7 +32,7 @@ from typing import Any, Literal
 
 from service.jobs import JobQueue
 from service.settings import Settings
-from service.storage import Storage
+from service.storage import Storage, video_keys
 from service.store import Phase, SceneRecord, SceneStore
 
 log = logging.getLogger("cmc.worker")
@@ -115,10 +115,10 @@ class _Heartbeat:
             fields, self._pending = self._pending, {}
         s = self.ctx.settings
         hb = self.ctx.store.heartbeat(self.scene_id, self.ctx.worker_id, s.lease_seconds, **fields)
-        if not hb.holds_lease:
-            self._halt("lease_lost")
-        elif hb.cancel_requested:
+        if hb.cancel_requested:  # first: a cancelled job's lease is void too
             self._halt("cancelled")
+        elif not hb.holds_lease:
+            self._halt("lease_lost")
         elif time.monotonic() > self.deadline:
             self._halt("time_limit")
         elif self.ctx.shutdown.is_set():
@@ -160,11 +160,9 @@ def run_job(ctx: JobContext, scene_id: str, phase: Phase) -> str:
             elif hb.reason == "time_limit":
                 ctx.store.fail(scene_id, "time_limit_exceeded", f"{phase} took longer than {limit:.0f} s")
                 outcome = "failed"
-            elif hb.reason == "cancelled":
-                outcome = "cancelled"
-            else:  # lease lost or shutting down: someone (or the next start) resumes it
+            else:  # cancelled; or lease lost / shutting down: someone (or the next start) resumes it
                 ctx.store.release(scene_id, ctx.worker_id)
-                outcome = "stopped"
+                outcome = "cancelled" if hb.reason == "cancelled" else "stopped"
     after = ctx.store.get(scene_id, include_deleted=True)
     if after is None or after.deleted:
         ctx.storage.delete_scene(scene_id)  # anything written after the API removed the data
@@ -305,6 +303,38 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     if not ctx.store.advance(rec.id, ctx.worker_id, "done", "ready", **ready):
         raise JobStopped("lease_lost")
     ckpt.unlink(missing_ok=True)  # the baked MPI is the product; the checkpoint was for resuming
+
+
+def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
+    """Render the camera-path video ``path`` (spiral, orbit, dolly) of a ready scene into
+    storage, once: the API serves the cached file from then on."""
+    from cmc.baking import BakedScene
+    from cmc.video import render_path_video
+
+    mp4, state = video_keys(scene_id, path)
+    rec = ctx.store.get(scene_id)
+    if rec is None or rec.status != "ready" or ctx.storage.exists(mp4):
+        return "skipped"
+    last = [0.0]
+
+    def on_frame(done: int, total: int) -> None:
+        if time.monotonic() - last[0] > 1.0 or done == total:
+            last[0] = time.monotonic()
+            ctx.storage.write_bytes(state, json.dumps({"progress": done / total, "updated_at": time.time()}).encode())
+
+    try:
+        baked = BakedScene.load(ctx.storage.path(f"{scene_id}/baked"))
+        render_path_video(baked, path, ctx.storage.path(mp4), on_frame=on_frame)  # type: ignore[arg-type]
+    except Exception as e:
+        log.exception("video %s of %s failed", path, scene_id)
+        error = {"error": f"{type(e).__name__}: {e}", "updated_at": time.time()}
+        ctx.storage.write_bytes(state, json.dumps(error).encode())
+        return "failed"
+    ctx.storage.path(state).unlink(missing_ok=True)
+    after = ctx.store.get(scene_id)
+    if after is None:  # deleted while rendering
+        ctx.storage.delete_scene(scene_id)
+    return "done"
 
 
 def requeue_stale_jobs(ctx: JobContext) -> list[str]:
