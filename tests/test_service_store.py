@@ -132,3 +132,10 @@ def test_fail_and_finished_durations(store: SceneStore) -> None:
     store.fail(rec.id, "other", "ignored")  # already ended
     assert store.get(rec.id).error_code == "training_failed"
     assert [s for s, _ in store.finished_durations()] == ["failed"]
+
+
+def test_sqlite_store_creates_its_folder(tmp_path) -> None:
+    s = SceneStore(f"sqlite:///{tmp_path / 'fresh' / 'data' / 'cmc.db'}")
+    make(s)
+    assert (tmp_path / "fresh" / "data" / "cmc.db").exists()
+    s.close()
