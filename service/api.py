@@ -6,6 +6,7 @@ import base64
 import json
 import logging
 import time
+import uuid
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from functools import cache
@@ -240,8 +241,6 @@ async def create_scene(
         Header(alias="Idempotency-Key", max_length=200, description="retries with the same key make one scene"),
     ] = None,
 ) -> Response:
-    import uuid
-
     scene_id = uuid.uuid4().hex
     s = svc.settings
     try:
