@@ -242,59 +242,127 @@ def render_texture_image(
     world_from_tgt: torch.Tensor,
     width: int,
     height: int,
-    plane_chunk: int = 8,
+    blocks: int | None = None,
 ) -> RayOutput:
-    """Whole-image render of fixed textures: one warp of every plane, then compositing.
+    """Whole-image render of fixed textures: every plane warped by its homography, then composited.
 
-    The fast path for baked MPIs. Textures are premultiplied, so sampling outside a plane (zero
-    padding) is simply transparent. The homography of plane k (depth z_k) is written as
-    ``G_k = A + b c^T / (z_k - t_z)`` (A, b, c shared by all planes; G includes the map from
-    reference pixels to plane grid coordinates), so the D warps cost a few broadcasts; the
-    composite uses the inclusive transmittance ``T_k = prod_{j<=k} (1 - a_j)``:
-    colour ``C_0 + sum_{k>=1} T_{k-1} C_k``, coverage ``1 - T_{D-1}``, and depth
-    ``sum_k (T_{k-1} - T_k) lam_k`` with lam_k = (z_k - t_z) / dz(p) the target depth.
+    The fast path for baked MPIs (slow twin: :func:`render_texture_image_reference`). Textures
+    are premultiplied, so sampling outside a plane (zero padding) is simply transparent.
+
+    Warp: let ``[R | t]`` = ref_from_tgt, ``d(p) = R K_tgt^-1 p`` the reference-frame direction
+    of the ray through target pixel p (homogeneous, target z = 1) and ``e_k = z_k - t_z`` for
+    the plane at reference depth z_k. The ray meets plane k at target depth
+    ``lam_k = e_k / d_z(p)``, at the point ``t + lam_k d(p)``, whose plane grid coordinates are
+    (M [2, 3]: K_ref followed by reference pixels -> grid, :meth:`MPIFrame.grid_from_pixels`)::
+
+        g_k(p) = (e_k / z_k) m(p) + M t / z_k,    m(p) = M d(p) / d_z(p),
+
+    an affine function of one plane-independent 2-vector per pixel, so each plane's warp is a
+    single multiply-add. Crossings behind the target (lam_k <= 0: d_z(p) and e_k of opposite
+    signs) are sent far outside the plane.
+
+    Composite, front to back, with the exclusive transmittance ``T_k = prod_{j<k} (1 - a_j)``:
+    premultiplied colour and coverage ``sum_k T_k (C_k, a_k)``; depth
+    ``sum_k (T_k - T_{k+1}) lam_k = (sum_k T_k (e_k - e_{k-1}) - T_D e_{D-1}) / d_z(p)``
+    (with e_{-1} = 0: the sum telescopes).
+
+    Cost: the bilinear gathers of ``grid_sample`` dominate, and from main memory they stall. So
+    the planes go one at a time over the whole image, each plane's texels first read in order
+    (a streaming pass that leaves them in cache for the scattered gathers; a quarter off the
+    whole render on the 2-core CPU of bench/render_speed.py), and the per-plane working set
+    (one plane's texels, [4, P] samples and the accumulators) stays in cache. The pixels are
+    split into ``blocks`` batches (default: torch's thread count) that grid_sample processes in
+    parallel; the result does not depend on ``blocks``.
 
     Shape: rgba_premult [D, 4, h, w] (rgb * alpha, alpha); K_tgt [3, 3]; world_from_tgt [4, 4].
-    Returns a RayOutput over the H * W pixels in row-major order.
+    Returns a RayOutput over the height * width pixels in row-major order.
     """
     dev, dt = rgba_premult.device, rgba_premult.dtype
-    m = frame.margin
-    N = torch.tensor(
-        [[2 / (frame.width * m), 0, -1 / m], [0, 2 / (frame.height * m), -1 / m], [0, 0, 1]], device=dev, dtype=dt
+    D, _, h, w = rgba_premult.shape
+    mg = frame.margin
+    grid_from_ref_pixels = torch.tensor(
+        [[2 / (frame.width * mg), 0, -1 / mg], [0, 2 / (frame.height * mg), -1 / mg]], device=dev, dtype=dt
     )
+    M = grid_from_ref_pixels @ frame.K  # [2, 3]
     ref_from_tgt = frame.ref_from_world @ world_from_tgt
     R, t = ref_from_tgt[:3, :3], ref_from_tgt[:3, 3]
-    K_inv = torch.linalg.inv(K_tgt)
-    A = N @ frame.K @ R @ K_inv
-    b = N @ frame.K @ t
-    c = K_inv.T @ R[2]  # n_t^T K^-1 p with n_t = R^T e_z
-    uv = pixel_centers(width, height, dev)
-    p = torch.cat([uv, torch.ones_like(uv[:, :1])], -1)  # [P, 3]
-    Ap = p @ A.T  # [P, 3]
-    cp = p @ c  # [P]: also dz(p), the reference z-component of the ray with target z = 1
+    d_from_pixel = R @ torch.linalg.inv(K_tgt)  # [3, 3]: homogeneous target pixel -> d(p)
     z = frame.depths
-    inv_d = (1.0 / (z - t[2]))[:, None]  # [D, 1]
-    rgb = torch.zeros(3, len(p), device=dev, dtype=dt)
-    T_prev = torch.ones(len(p), device=dev, dtype=dt)  # transmittance in front of the chunk
-    zsum = torch.zeros_like(T_prev)  # sum_k (T_{k-1} - T_k) z_k
-    # Planes in chunks keep the working set in cache (one [chunk, 4, P] sample at a time).
-    for k0 in range(0, len(z), plane_chunk):
-        sl = slice(k0, k0 + plane_chunk)
-        den = Ap[:, 2] + inv_d[sl] * (cp * b[2])
-        den = torch.where(den > 1e-6, den, torch.full_like(den, 1e-12))  # behind the target: far outside
-        gx = (Ap[:, 0] + inv_d[sl] * (cp * b[0])) / den
-        gy = (Ap[:, 1] + inv_d[sl] * (cp * b[1])) / den
-        grid = torch.stack([gx, gy], -1).reshape(-1, height, width, 2)
-        s = F.grid_sample(rgba_premult[sl], grid, align_corners=False).reshape(len(den), 4, -1)  # [C, 4, P]
-        T = torch.cumprod(1 - s[:, 3], 0) * T_prev  # inclusive transmittance of the chunk's planes
-        for k in range(len(T)):
-            rgb.addcmul_(T_prev if k == 0 else T[k - 1], s[k, :3])
-        zc = z[sl]
-        zsum += zc[0] * T_prev + (zc[1:] - zc[:-1]) @ T[:-1] - T[-1] * zc[-1]
-        T_prev = T[-1]
-    acc = 1 - T_prev
-    depth = (zsum - acc * t[2]) / cp
-    return RayOutput(rgb.T, depth, acc)
+    e = z - t[2]  # [D]
+    offsets = (M @ t)[None] / z[:, None]  # [D, 2]
+    offsets[e == 0] = 1e12  # a plane through the target centre is seen edge-on: transparent
+    # Pixels, row-major, padded to `blocks` equal batches: [B, 1, Pb, ...].
+    P = width * height
+    B = blocks or max(1, torch.get_num_threads())
+    Pb = -(-P // B)
+    u = torch.arange(width, device=dev, dtype=dt) + 0.5
+    v = torch.arange(height, device=dev, dtype=dt) + 0.5
+    Q = torch.cat([M @ d_from_pixel, d_from_pixel[2:]])  # [3, 3]: pixel (u, v, 1) -> (M d(p), d_z(p))
+    md = ((v[:, None, None] * Q[:, 1] + Q[:, 2]) + u[None, :, None] * Q[:, 0]).reshape(P, 3)
+    md = torch.cat([md, md[-1:].expand(B * Pb - P, 3)])  # padded with copies of the last pixel
+    dz = md[:, 2].reshape(B, 1, 1, Pb)
+    m = (md[:, :2] / md[:, 2:]).reshape(B, 1, Pb, 2)
+    # lam_k > 0 needs d_z(p) and e_k of the same sign: m where it holds, far outside elsewhere.
+    dz_m = dz.reshape(B, 1, Pb, 1)
+    m_e_pos = torch.where(dz_m > 0, m, 1e12)  # for the planes with e_k > 0 (in front of the target centre)
+    m_e_neg = torch.where(dz_m < 0, m, 1e12)  # for those with e_k <= 0 (the target is inside the MPI)
+    scales, e_list = (e / z).tolist(), e.tolist()
+    depth_steps = torch.cat([e[:1], e[1:] - e[:-1], -e[-1:]]).tolist()  # [D + 1]
+    out = torch.zeros(B, 4, 1, Pb, device=dev, dtype=dt)  # sum_k T_k (C_k, a_k)
+    trans = torch.ones(B, 1, 1, Pb, device=dev, dtype=dt)  # T_k
+    depth_sum = torch.zeros(B, 1, 1, Pb, device=dev, dtype=dt)  # d_z(p) x depth
+    grid = torch.empty(B, 1, Pb, 2, device=dev, dtype=dt)
+    for k in range(D):
+        plane = rgba_premult[k : k + 1]
+        if dev.type == "cpu":
+            plane.sum()  # the streaming read that brings the plane's texels into cache
+        torch.add(offsets[k], m_e_pos if e_list[k] > 0 else m_e_neg, alpha=scales[k], out=grid)
+        s = F.grid_sample(plane.expand(B, 4, h, w), grid, align_corners=False)  # [B, 4, 1, Pb]
+        depth_sum.add_(trans, alpha=depth_steps[k])
+        out.addcmul_(s, trans)
+        trans.addcmul_(trans, s[:, 3:], value=-1)  # T_{k+1} = T_k (1 - a_k)
+    depth_sum.add_(trans, alpha=depth_steps[D])
+    out = out.permute(1, 0, 2, 3).reshape(4, B * Pb)[:, :P]
+    return RayOutput(out[:3].T, (depth_sum / dz).reshape(-1)[:P], out[3])
+
+
+def render_texture_image_reference(
+    rgba_premult: torch.Tensor,
+    frame: MPIFrame,
+    K_tgt: torch.Tensor,
+    world_from_tgt: torch.Tensor,
+    width: int,
+    height: int,
+) -> RayOutput:
+    """Slow, obviously-correct twin of :func:`render_texture_image` for tests: one plane at a time,
+    by intersecting each pixel's world-space ray with the plane and projecting the point into the
+    reference camera (no homography), one ``grid_sample`` per plane (zero padding: transparent
+    outside the plane) and front-to-back "over" in a loop. Crossings behind the target camera
+    are transparent.
+
+    Shape: as :func:`render_texture_image`.
+    """
+    uv = pixel_centers(width, height, rgba_premult.device).to(rgba_premult.dtype)
+    d_cam = torch.cat([uv, torch.ones_like(uv[:, :1])], -1) @ torch.linalg.inv(K_tgt).T
+    d_world = d_cam @ world_from_tgt[:3, :3].T  # target z-depth parametrisation
+    ref_from_world = frame.ref_from_world
+    o_ref = ref_from_world[:3, :3] @ world_from_tgt[:3, 3] + ref_from_world[:3, 3]
+    d_ref = d_world @ ref_from_world[:3, :3].T
+    rgb = torch.zeros_like(d_ref)
+    depth = torch.zeros_like(d_ref[:, 0])
+    trans = torch.ones_like(depth)
+    for k, z in enumerate(frame.depths):
+        lam = (z - o_ref[2]) / d_ref[:, 2]  # target depth of the crossing
+        in_front = lam > 0
+        p = o_ref + lam[:, None] * d_ref
+        pix = p @ frame.K.T
+        g = frame.grid_from_pixels(pix[:, :2] / pix[:, 2:3])
+        g = torch.where(in_front[:, None], g, torch.full_like(g, 3.0))
+        s = F.grid_sample(rgba_premult[k : k + 1], g[None, None], align_corners=False)[0, :, 0].T  # [P, 4]
+        rgb = rgb + trans[:, None] * s[:, :3]
+        depth = depth + trans * s[:, 3] * torch.where(in_front, lam, torch.zeros_like(lam))
+        trans = trans * (1 - s[:, 3])
+    return RayOutput(rgb, depth, 1 - trans)
 
 
 @torch.no_grad()
@@ -317,7 +385,6 @@ def render_image(
     device = frames[0].K.device
     K_t = torch.as_tensor(np.asarray(K), dtype=torch.float32, device=device)
     P_t = torch.as_tensor(np.asarray(world_from_cam), dtype=torch.float32, device=device)
-    uv = pixel_centers(width, height, device)
     centers = torch.stack([f.world_from_ref[:3, 3] for f in frames])
     baseline = mean_baseline(centers)
     if mpi_index is None:
@@ -331,6 +398,7 @@ def render_image(
         outs = [render_texture_image(fields[i].premultiplied, frames[i], K_t, P_t, width, height) for i in use]
         parts.append(blend(outs, weights[use]))
     else:
+        uv = pixel_centers(width, height, device)
         for s in range(0, len(uv), chunk):
             outs = [render_rays(fields[i], frames[i], K_t, P_t, uv[s : s + chunk]) for i in use]
             parts.append(blend(outs, weights[use]))

@@ -1,0 +1,187 @@
+"""CPU latency of the baked renderer (``BakedScene.render``) on a real-size fern bake.
+
+Builds a baked scene faithful to a 48-plane fern bake without a long training run: the ``fast``
+preset on LLFF fern's three training views (1, 10, 19), a few training steps on top of the
+plane-sweep alpha initialisation, baked with all planes (``cmc.baking.bake``, merge 1; the
+renderer's cost does not depend on the alpha values). Then times ``BakedScene.render`` at the
+native 504x378 size for the three held-out test poses (views 0, 8, 16) and the three input
+poses: one warm-up render per pose, then ``--repeats`` timed renders each, reporting the median
+and p90 per view and over all renders.
+
+Usage (repository root)::
+
+    .venv/bin/python bench/render_speed.py [--data ../shared/datasets/llff/fern] [--steps 3]
+        [--repeats 7] [--baked DIR] [--before OLD_RENDERING.py] [--out bench/render_speed_cpu.json]
+
+``--baked DIR`` reuses a bake already in DIR (or writes the new bake there), so repeated
+measurements time the same textures.
+
+``--before OLD_RENDERING.py`` (e.g. ``git show HEAD~1:cmc/rendering.py > /tmp/old.py``) also
+times that version of :mod:`cmc.rendering` (its ``render_image`` over the same loaded scene),
+alternating with the current one render by render, so that both see the same machine state (a
+shared CPU drifts by tens of percent within minutes); the report then has a ``before`` block and
+the agreement of the two renders (colour PSNR, depth max relative error over covered pixels).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import importlib.util
+import json
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from cmc.baking import MANIFEST, BakedScene, bake  # noqa: E402
+from cmc.bench import git_commit  # noqa: E402
+from cmc.config import preset_config  # noqa: E402
+from cmc.datasets import load_llff  # noqa: E402
+from cmc.metrics import psnr  # noqa: E402
+from cmc.training import Trainer  # noqa: E402
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def build_bake(data: Path, steps: int, out_dir: Path) -> dict:
+    """Train the ``fast`` preset for ``steps`` steps on fern and bake all planes to ``out_dir``."""
+    split = load_llff(data)
+    t0 = time.perf_counter()
+    trainer = Trainer(split.train, preset_config("fast", steps=steps))
+    trainer.fit()
+    bake(trainer.model, out_dir)
+    return {"train_steps": steps, "build_seconds": time.perf_counter() - t0}
+
+
+def load_rendering(path: Path) -> ModuleType:
+    """Another version of cmc/rendering.py, imported beside the current one."""
+    spec = importlib.util.spec_from_file_location("rendering_before", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def summary(ms: list[float]) -> dict:
+    return {"median_ms": statistics.median(ms), "p90_ms": float(np.percentile(np.asarray(ms), 90))}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared/datasets/llff/fern")
+    ap.add_argument("--steps", type=int, default=3, help="training steps before baking")
+    ap.add_argument("--repeats", type=int, default=7, help="timed renders per pose (after one warm-up)")
+    ap.add_argument("--baked", type=Path, default=None, help="reuse / keep the bake in this folder")
+    ap.add_argument("--before", type=Path, default=None, help="an older cmc/rendering.py to time alternately")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench/render_speed_cpu.json")
+    args = ap.parse_args()
+
+    with tempfile.TemporaryDirectory() as tmp:
+        baked_dir = args.baked or Path(tmp) / "baked"
+        build = {"reused_bake": True}
+        if not (baked_dir / MANIFEST).exists():
+            build = {"reused_bake": False, **build_bake(args.data, args.steps, baked_dir)}
+        baked = BakedScene.load(baked_dir)
+    split = load_llff(args.data)
+    poses = [("test", split.test_ids[k], split.test.cameras, k) for k in range(len(split.test))]
+    poses += [("input", split.train_ids[k], split.train.cameras, k) for k in range(len(split.train))]
+
+    renderers = {"after": lambda K, pose, w, h: baked.render(K, pose, w, h)}
+    if args.before:
+        old = load_rendering(args.before)
+        renderers["before"] = lambda K, pose, w, h: old.render_image(baked.fields, baked.frames, K, pose, w, h)
+    views: dict[str, list[dict]] = {name: [] for name in renderers}
+    all_ms: dict[str, list[float]] = {name: [] for name in renderers}
+    agreement = []
+    for kind, view, cams, k in poses:
+        K, pose, w, h = cams.K[k], cams.world_from_cam[k], cams.width, cams.height
+        outs = {name: render(K, pose, w, h) for name, render in renderers.items()}  # warm-up
+        if args.before:
+            a, b = outs["after"], outs["before"]
+            covered = b.acc > 1e-3
+            rel = ((a.depth - b.depth).abs() / b.depth)[covered]
+            agreement.append(
+                {
+                    "view": int(view),
+                    "psnr_db": psnr(a.rgb.numpy(), b.rgb.numpy()),
+                    "depth_max_rel": float(rel.max()) if len(rel) else 0.0,
+                    "covered": float(covered.float().mean()),
+                }
+            )
+        ms: dict[str, list[float]] = {name: [] for name in renderers}
+        for r in range(args.repeats):
+            for name in list(renderers)[:: 1 if r % 2 == 0 else -1]:  # alternate the order
+                t = time.perf_counter()
+                renderers[name](K, pose, w, h)
+                ms[name].append(1000 * (time.perf_counter() - t))
+        line = f"{kind:5s} view {view:2d}:"
+        for name, times in ms.items():
+            all_ms[name] += times
+            views[name].append({"kind": kind, "view": int(view), **summary(times), "ms": times})
+            line += f"  {name} median {summary(times)['median_ms']:6.1f} ms p90 {summary(times)['p90_ms']:6.1f} ms"
+        print(line)
+    frame = baked.frames[0]
+    report = {
+        "benchmark": "baked render latency (BakedScene.render), LLFF fern, CPU",
+        "command": "python bench/render_speed.py " + " ".join(sys.argv[1:]),
+        "date": dt.datetime.now().isoformat(timespec="seconds"),
+        "git_commit": git_commit(),
+        "torch": torch.__version__,
+        "machine": {
+            "cpu": cpu_model(),
+            "cores": torch.multiprocessing.cpu_count(),
+            "torch_threads": torch.get_num_threads(),
+            "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+            "python": platform.python_version(),
+        },
+        "scene": {
+            "name": args.data.name,
+            "render_size": [baked.width, baked.height],
+            "mpis": len(baked.frames),
+            "planes_per_mpi": len(frame.depths),
+            "tile": list(baked.fields[0].rgba.shape[2:]),
+            "margin": frame.margin,
+            **build,
+        },
+        "repeats_per_view": args.repeats,
+        "warmup_per_view": 1,
+        "overall": summary(all_ms["after"]),
+        "views": views["after"],
+    }
+    if args.before:
+        report["before"] = {
+            "rendering": str(args.before),
+            "interleaved": True,
+            "overall": summary(all_ms["before"]),
+            "views": views["before"],
+            "agreement_with_after": agreement,
+        }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=1) + "\n")
+    for name in renderers:
+        s = summary(all_ms[name])
+        print(f"overall {name}: median {s['median_ms']:.1f} ms  p90 {s['p90_ms']:.1f} ms")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
