@@ -174,6 +174,30 @@ def main() -> None:
             *rows,
             "",
         ]
+    svc = load("service_cpu.json")
+    if svc:
+        up, rd, cc = svc["upload"], svc["render"], svc["concurrent"]
+        sizes = ", ".join(f"{f['name']} {f['bytes'] / 1e6:.1f} MB" for f in up["files"])
+        out += [
+            "## REST service (issue 4): upload, render latency, concurrent renders\n",
+            "The deployed shape on this machine: uvicorn (API, Celery mode, SQLite store) and one Celery worker "
+            "for both queues, each its own process, over the real Redis; HTTP over loopback; times are the "
+            "client's wall clock. See the docstring of bench/service_bench.py for the protocol.\n",
+            f"Command: `{svc['command']}`  \n"
+            f"Machine: {svc['machine']['cpu']}, {svc['machine']['cores']} cores, no GPU; Python "
+            f"{svc['machine']['python']}. Date: {svc['date']}; git commit {svc['git_commit']}.\n",
+            f"- upload of the three fern phone JPEGs ({sizes}; 4032x3024) answered (202) in "
+            f"{verdict(up['median_s'], up['target_s'], True)} s, median of {len(up['seconds'])} "
+            f"(slowest {up['max_s']:.3f} s)",
+            f"- render {rd['size'][0]}x{rd['size'][1]} PNG, baked cache warm, {len(rd['seconds'])} sequential "
+            f"requests: p50 {verdict(rd['p50_s'] * 1000, rd['target_p50_s'] * 1000, True)} ms, "
+            f"p90 {rd['p90_s'] * 1000:.0f} ms",
+            f"- {cc['requests']} concurrent render requests: {cc['ok']} answered 200 with an image, "
+            f"{cc['errors']} errors; median {cc['median_s']:.2f} s, slowest {cc['slowest_s']:.2f} s "
+            "(renders are computed `CMC_RENDER_CONCURRENCY` = 2 at a time; the rest wait their turn)",
+            f"- the fern scene ({svc['scene']['steps']} steps, dataset poses) was ready "
+            f"{svc['scene']['seconds_to_ready']:.0f} s after its upload\n",
+        ]
     for name in ("poses_fern.md", "poses_e2e.md"):
         if (HERE / name).exists():
             out.append((HERE / name).read_text().replace("\n# ", "\n## ", 1).replace("# ", "## ", 1))
