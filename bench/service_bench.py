@@ -44,7 +44,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cmc.cameras import CameraFile, camera_file_to_dict, convert_pose  # noqa: E402
+from cmc.cameras import CameraFile, camera_file_to_dict  # noqa: E402
 from cmc.datasets import load_llff  # noqa: E402
 
 
@@ -59,18 +59,10 @@ def percentile(xs: list[float], q: float) -> float:
 
 
 def camera_body(split, i: int) -> dict:
-    cams = split.cameras[i : i + 1]
-    K = cams.K[0]
-    return {
-        "transform_matrix": convert_pose(cams.world_from_cam[0], "opencv", "opengl").tolist(),
-        "fl_x": float(K[0, 0]),
-        "fl_y": float(K[1, 1]),
-        "cx": float(K[0, 2]),
-        "cy": float(K[1, 2]),
-        "w": cams.width,
-        "h": cams.height,
-        "convention": "opengl",
-    }
+    """The render request body for test view ``i``: its cameras-file frame, size and convention."""
+    data = camera_file_to_dict(CameraFile(split.cameras[i : i + 1], ["render"]), "opengl")
+    frame = {k: v for k, v in data["frames"][0].items() if k != "file_path"}
+    return {**frame, "w": data["w"], "h": data["h"], "convention": "opengl"}
 
 
 def main() -> None:

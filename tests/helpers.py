@@ -9,7 +9,7 @@ import math
 import numpy as np
 from PIL import Image
 
-from cmc.cameras import CameraFile, Cameras, camera_file_to_dict, convert_pose
+from cmc.cameras import CameraFile, Cameras, camera_file_to_dict
 from cmc.datasets import Scene, synthetic_cameras, synthetic_scene
 
 
@@ -51,16 +51,8 @@ def synthetic_upload(
 
 
 def render_body(cameras: Cameras, convention: str = "opengl") -> dict:
-    """The JSON body of the render / depth endpoints for the first of ``cameras``."""
-    pose = convert_pose(cameras.world_from_cam[0], "opencv", convention)
-    K = cameras.K[0]
-    return {
-        "transform_matrix": pose.tolist(),
-        "fl_x": float(K[0, 0]),
-        "fl_y": float(K[1, 1]),
-        "cx": float(K[0, 2]),
-        "cy": float(K[1, 2]),
-        "w": cameras.width,
-        "h": cameras.height,
-        "convention": convention,
-    }
+    """The JSON body of the render / depth endpoints for the first of ``cameras``: its frame of
+    the cameras file plus the image size and convention (what a client sends)."""
+    data = camera_file_to_dict(CameraFile(cameras[:1], ["render"]), convention)
+    frame = {k: v for k, v in data["frames"][0].items() if k != "file_path"}
+    return {**frame, "w": data["w"], "h": data["h"], "convention": convention}

@@ -112,6 +112,12 @@ class Deployment:
             ],
         )
 
+    def start_all(self) -> None:
+        """The API, a CPU worker and a GPU worker."""
+        self.start_api()
+        self.start_worker("cpu", "CMC_CPU_QUEUE")
+        self.start_worker("gpu", "CMC_GPU_QUEUE")
+
     def kill(self, name: str) -> None:
         p = self.procs.pop(name)
         try:
@@ -174,9 +180,7 @@ def deployment(tmp_path):
 
 def test_upload_poll_render_and_depth_across_processes(deployment: Deployment) -> None:
     d = deployment
-    d.start_api()
-    d.start_worker("cpu", "CMC_CPU_QUEUE")
-    d.start_worker("gpu", "CMC_GPU_QUEUE")
+    d.start_all()
     parts, _, novel = synthetic_upload(steps=25)
     r = httpx.post(f"{d.url}/v1/scenes", files=parts, headers=d.headers, timeout=30)
     assert r.status_code == 202, r.text
@@ -208,9 +212,7 @@ def test_upload_poll_render_and_depth_across_processes(deployment: Deployment) -
 
 def test_killed_worker_is_resumed_from_its_checkpoint(deployment: Deployment) -> None:
     d = deployment
-    d.start_api()
-    d.start_worker("cpu", "CMC_CPU_QUEUE")
-    d.start_worker("gpu", "CMC_GPU_QUEUE")
+    d.start_all()
     parts, _, _ = synthetic_upload(steps=40)
     sid = httpx.post(f"{d.url}/v1/scenes", files=parts, headers=d.headers, timeout=30).json()["id"]
     ckpt = Path(d.env["CMC_STORAGE_DIR"]) / sid / "checkpoint.pt"
