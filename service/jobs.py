@@ -39,7 +39,7 @@ class CeleryJobQueue:
     def __init__(self, broker_url: str, cpu_queue: str = "cpu", gpu_queue: str = "gpu"):
         from celery import Celery
 
-        self.queues = {"poses": cpu_queue, "train": gpu_queue}
+        self.queues = {"poses": cpu_queue, "train": gpu_queue, "video": gpu_queue}  # task key -> queue
         self.app = Celery("cmc-api", broker=broker_url)
         self.app.conf.broker_connection_retry_on_startup = True
         self.app.conf.broker_transport_options = {"max_retries": 3, "interval_start": 0.2, "interval_step": 0.5}
@@ -49,7 +49,7 @@ class CeleryJobQueue:
         self.app.send_task(TASK_NAMES[phase], args=[scene_id], queue=self.queues[phase])
 
     def submit_video(self, scene_id: str, path: str) -> None:
-        self.app.send_task(TASK_NAMES["video"], args=[scene_id, path], queue=self.queues["train"])
+        self.app.send_task(TASK_NAMES["video"], args=[scene_id, path], queue=self.queues["video"])
 
     def _redis(self):
         import redis
@@ -60,7 +60,7 @@ class CeleryJobQueue:
         """Length of each queue's Redis list (Celery's Redis transport keeps a queue in one list)."""
         r = self._redis()
         try:
-            return {q: int(r.llen(q)) for q in self.queues.values()}
+            return {q: int(r.llen(q)) for q in sorted(set(self.queues.values()))}
         finally:
             r.close()
 

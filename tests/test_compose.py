@@ -343,7 +343,7 @@ def test_celery_routes_reach_the_workers(services: dict[str, Any], celery_probe:
     assert celery_probe.returncode == 0, err
     probe = json.loads(out)
     routes = {PROBED_WORKERS[0]: probe["routes"], **probe["other_routes"]}
-    consumer = {"poses": "worker-cpu", "train": "worker-gpu"}
+    consumer = {"poses": "worker-cpu", "train": "worker-gpu", "video": "worker-gpu"}
     assert set(consumer) == set(TASK_NAMES)
     api = Settings(**_settings_fields(environment(services["api"])))
     for phase, task in TASK_NAMES.items():
