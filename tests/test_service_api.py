@@ -467,3 +467,20 @@ def test_unfinished_job_resumes_after_a_restart(tmp_path: Path) -> None:
         rec = client.app.state.services.store.get(sid)
     assert rec.stats["train"]["resumed_from_step"] >= 10
     assert rec.attempts == 0  # a clean stop is not a lost worker
+
+
+def test_serve_refuses_open_network_without_keys_and_new_api_key(tmp_path: Path, capsys, monkeypatch) -> None:
+    from cmc.cli import main
+    from service.auth import KeyRing
+
+    monkeypatch.delenv("CMC_API_KEYS", raising=False)
+    monkeypatch.delenv("CMC_API_KEYS_FILE", raising=False)
+    assert main(["serve", "--host", "0.0.0.0", "--data-dir", str(tmp_path / "d")]) == 2
+    assert "without API keys" in capsys.readouterr().err
+    keys = tmp_path / "keys.txt"
+    assert main(["new-api-key", str(keys), "--label", "ios app"]) == 0
+    key = capsys.readouterr().out.splitlines()[0]
+    assert key.startswith("cmc_") and key not in keys.read_text()
+    ring = KeyRing.load("", keys)
+    assert ring.owner(f"Bearer {key}") == key_digest(key)[:16]
+    assert (keys.stat().st_mode & 0o777) == 0o600
