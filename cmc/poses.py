@@ -236,8 +236,18 @@ class _Cancel:
         self.check()
 
 
+class _Timings(dict):
+    """Wall-clock seconds per stage; calls ``on_stage(name)`` as each stage starts (progress)."""
+
+    def __init__(self, on_stage: Callable[[str], None] | None = None):
+        super().__init__()
+        self.on_stage = on_stage
+
+
 @contextmanager
-def _stage(timings: dict[str, float], name: str) -> Iterator[None]:
+def _stage(timings: _Timings, name: str) -> Iterator[None]:
+    if timings.on_stage is not None:
+        timings.on_stage(name)
     t0 = time.perf_counter()
     try:
         yield
@@ -375,7 +385,7 @@ def _features_and_matches(
     max_sift_size: int,
     seed: int,
     cancel: _Cancel,
-    timings: dict[str, float],
+    timings: _Timings,
     single_camera: bool,
     use_priors: bool,
 ) -> _Matches:
@@ -485,7 +495,7 @@ def _finish(
     cameras: Cameras,
     near_far: np.ndarray,
     convention: PoseConvention,
-    timings: dict[str, float],
+    timings: _Timings,
     stats: dict[str, Any],
     t_start: float,
 ) -> PoseResult:
@@ -522,6 +532,7 @@ def estimate_poses(
     max_pixels: int = MAX_PIXELS,
     convention: PoseConvention = "opengl",
     verbose: bool = False,
+    on_stage: Callable[[str], None] | None = None,
 ) -> PoseResult:
     """Intrinsics, camera-to-world poses and near/far for 2-5 photos by structure from motion.
 
@@ -539,6 +550,8 @@ def estimate_poses(
         max_pixels: refuse photos with more pixels (decompression bombs).
         convention: camera axes written to cameras.json ('opengl' as nerfstudio/ARKit, or 'opencv').
         verbose: let COLMAP log to stderr.
+        on_stage: called with each stage's name as it starts ('intake', 'features', 'matching',
+            'mapping', 'near_far', 'write'), e.g. to report progress.
     Returns:
         PoseResult; the poses are up to a similarity (SfM has no absolute scale or orientation).
     Raises:
@@ -547,7 +560,7 @@ def estimate_poses(
     """
     t_start = time.perf_counter()
     pycolmap = _pycolmap()
-    timings: dict[str, float] = {}
+    timings = _Timings(on_stage)
     if len(image_paths) < 2:
         raise PoseEstimationError(f"structure from motion needs at least 2 photos, got {len(image_paths)}")
     with _work_dir(work_dir) as work, _Cancel(pycolmap, should_stop) as cancel, _quiet(pycolmap, verbose):
@@ -747,6 +760,7 @@ def poses_from_client(
     max_pixels: int = MAX_PIXELS,
     convention: PoseConvention | None = None,
     verbose: bool = False,
+    on_stage: Callable[[str], None] | None = None,
 ) -> PoseResult:
     """Use the app's cameras (ARKit/ARCore) for the photos; fill in near/far when absent.
 
@@ -758,15 +772,16 @@ def poses_from_client(
             Frames are matched to photos by file name, else by name without extension; the
             intrinsics may be for any resolution with the photos' (upright) aspect ratio.
         scene_dir, long_side, max_sift_size, seed, should_stop, work_dir, keep_originals,
-            max_pixels, verbose: as in :func:`estimate_poses` (SIFT and matching only run when
-            the file has no near/far).
+            max_pixels, verbose, on_stage: as in :func:`estimate_poses` (SIFT and matching only
+            run when the file has no near/far; stages 'intake', ['features', 'matching',
+            'triangulation'], 'write').
         convention: axes written to cameras.json; default: the input file's.
     Raises:
         CameraError: the file is malformed, does not match the photos, or its poses do not fit
         the matched features; SceneError, PoseEstimationError, PoseEstimationCancelled.
     """
     t_start = time.perf_counter()
-    timings: dict[str, float] = {}
+    timings = _Timings(on_stage)
     if isinstance(cameras, dict):
         data_convention = cameras.get("convention", "opengl")
         client = camera_file_from_dict(cameras)

@@ -216,7 +216,9 @@ def test_depth_range() -> None:
 
 def test_sfm_recovers_known_cameras(scene, tmp_path: Path) -> None:
     cams, paths, _ = scene
-    result = estimate_poses(paths, tmp_path / "scene")
+    stages: list[str] = []
+    result = estimate_poses(paths, tmp_path / "scene", on_stage=stages.append)
+    assert stages == ["intake", "features", "matching", "mapping", "near_far", "write"]
     est = result.camera_file.cameras
     assert (est.width, est.height) == (W, H)
     rot, tdir = relative_errors(cams.world_from_cam, est.world_from_cam)
@@ -345,7 +347,11 @@ def test_cancellation(scene, tmp_path: Path) -> None:
 
 def test_client_poses_triangulate_near_far_and_round_trip(scene, tmp_path: Path) -> None:
     cams, paths, _ = scene
-    result = poses_from_client(paths, client_dict(cams, paths), tmp_path / "scene", long_side=160)
+    stages: list[str] = []
+    cameras = client_dict(cams, paths)
+    result = poses_from_client(paths, cameras, tmp_path / "scene", long_side=160, on_stage=stages.append)
+    assert stages == ["intake", "features", "matching", "triangulation", "write"]
+    assert set(result.timings) == set(stages) | {"total"}
     out = result.camera_file
     np.testing.assert_allclose(out.cameras.world_from_cam, cams.world_from_cam, atol=1e-12)
     np.testing.assert_allclose(out.cameras.K, cams.scaled(160, 120).K, atol=1e-9)
