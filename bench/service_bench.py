@@ -73,7 +73,7 @@ def main() -> None:
     ap.add_argument("--uploads", type=int, default=7)
     ap.add_argument("--renders", type=int, default=30)
     ap.add_argument("--concurrent", type=int, default=20)
-    ap.add_argument("--redis", default="redis://127.0.0.1:6379/13")
+    ap.add_argument("--redis", default="redis://127.0.0.1:6379/13", help="a Redis database of its own (emptied after)")
     args = ap.parse_args()
     fern = Path(args.data).resolve()
     tmp = Path(tempfile.mkdtemp(prefix="cmc-service-bench-"))
@@ -219,6 +219,9 @@ def main() -> None:
                 p.wait(15)
             except (ProcessLookupError, subprocess.TimeoutExpired):
                 os.killpg(p.pid, signal.SIGKILL)
+        import redis
+
+        redis.Redis.from_url(args.redis).flushdb()  # the benchmark's own database (--redis)
     out = Path(args.out)
     out.write_text(json.dumps(report, indent=1) + "\n")
     print(f"wrote {out}")

@@ -7,8 +7,8 @@ the real PostgreSQL at 127.0.0.1:5432 as the scene store.
 2. Kill the GPU worker (SIGKILL, its whole process group) mid-training; a new GPU worker resumes
    the job from its last checkpoint, not from zero.
 
-Each run uses its own queue names, Redis database and PostgreSQL database, so runs (and other
-users of those servers) do not see each other's messages.
+Each test uses its own queue names and PostgreSQL database; Redis database 14 is the tests' own
+and is emptied after each test (queues, bindings, the killed worker's unacknowledged message).
 """
 
 from __future__ import annotations
@@ -171,8 +171,7 @@ def deployment(tmp_path):
     finally:
         d.stop()
         r = redis.Redis.from_url(REDIS_URL)
-        for key in r.scan_iter(match=f"*{d.env['CMC_CPU_QUEUE'][4:]}*"):
-            r.delete(key)
+        r.flushdb()  # database 14 is these tests' own: queues, bindings, the killed worker's unacked message
         r.close()
         admin.execute(f'DROP DATABASE "{name}" WITH (FORCE)')
         admin.close()
