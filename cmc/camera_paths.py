@@ -25,8 +25,7 @@ from typing import Literal
 
 import numpy as np
 
-from cmc.cameras import Cameras
-from cmc.geometry import _project_to_rotation
+from cmc.cameras import Cameras, nearest_rotation
 
 PathKind = Literal["spiral", "orbit", "dolly"]
 PATH_KINDS: tuple[str, ...] = ("spiral", "orbit", "dolly")
@@ -36,7 +35,7 @@ def mean_pose(world_from_cam: np.ndarray) -> np.ndarray:
     """[4, 4] the mean camera of [N, 4, 4] poses: mean centre, mean rotation projected onto SO(3)."""
     P = np.asarray(world_from_cam, dtype=np.float64)
     pose = np.eye(4)
-    pose[:3, :3] = _project_to_rotation(P[:, :3, :3].mean(0))
+    pose[:3, :3] = nearest_rotation(P[:, :3, :3].mean(0))
     pose[:3, 3] = P[:, :3, 3].mean(0)
     return pose
 

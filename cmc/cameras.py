@@ -124,6 +124,16 @@ def validate_cameras(K: np.ndarray, world_from_cam: np.ndarray, width: int, heig
         raise CameraError("pose matrices must have last row [0, 0, 0, 1]")
 
 
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation closest to the 3x3 matrix ``M`` in the Frobenius norm (SVD, det +1)."""
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    return R
+
+
 def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """[3, 3] pinhole intrinsics in pixels."""
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])

@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from cmc.cameras import nearest_rotation
+
 
 def plane_depths(near: float, far: float, num_planes: int) -> np.ndarray:
     """[D] plane depths uniform in disparity from ``near`` (index 0) to ``far`` (index D-1)."""
@@ -75,15 +77,6 @@ def pixel_centers(width: int, height: int, device: torch.device | str = "cpu") -
     return torch.stack([u, v], dim=-1).reshape(-1, 2)
 
 
-def _project_to_rotation(M: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(M)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = U @ Vt
-    return R
-
-
 def sample_virtual_pose(world_from_cams: np.ndarray, rng: np.random.Generator, jitter: float = 0.1) -> np.ndarray:
     """A random unseen camera-to-world pose near the input cameras ([4, 4]).
 
@@ -95,7 +88,7 @@ def sample_virtual_pose(world_from_cams: np.ndarray, rng: np.random.Generator, j
     centers = world_from_cams[:, :3, 3]
     baseline = mean_baseline(centers)
     pose = np.eye(4)
-    pose[:3, :3] = _project_to_rotation(np.einsum("n,nij->ij", w, world_from_cams[:, :3, :3]))
+    pose[:3, :3] = nearest_rotation(np.einsum("n,nij->ij", w, world_from_cams[:, :3, :3]))
     pose[:3, 3] = w @ centers + rng.normal(scale=jitter * baseline, size=3)
     return pose
 

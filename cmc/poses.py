@@ -43,6 +43,7 @@ from cmc.cameras import (
     PoseConvention,
     camera_file_from_dict,
     load_camera_file,
+    nearest_rotation,
     save_camera_file,
 )
 from cmc.datasets import CAMERAS_FILE, SceneError
@@ -845,13 +846,6 @@ def poses_from_client(
 # --- Aligning two reconstructions ------------------------------------------------------------
 
 
-def _nearest_rotation(M: np.ndarray) -> np.ndarray:
-    """The rotation closest to the 3x3 matrix ``M`` in the Frobenius norm (SVD, det +1)."""
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    return U @ D @ Vt
-
-
 def similarity_from_cameras(
     src_world_from_cam: np.ndarray, dst_world_from_cam: np.ndarray
 ) -> tuple[float, np.ndarray, np.ndarray]:
@@ -871,7 +865,7 @@ def similarity_from_cameras(
     src, dst = np.asarray(src_world_from_cam, np.float64), np.asarray(dst_world_from_cam, np.float64)
     if src.shape != dst.shape or src.ndim != 3 or src.shape[1:] != (4, 4):
         raise ValueError(f"need two [N, 4, 4] pose arrays of the same N, got {src.shape} and {dst.shape}")
-    R = _nearest_rotation(np.einsum("nij,nkj->ik", dst[:, :3, :3], src[:, :3, :3]))
+    R = nearest_rotation(np.einsum("nij,nkj->ik", dst[:, :3, :3], src[:, :3, :3]))
     c_src, c_dst = src[:, :3, 3], dst[:, :3, 3]
     m_src, m_dst = c_src.mean(0), c_dst.mean(0)
     spread_src = np.sqrt(((c_src - m_src) ** 2).sum(1).mean())
