@@ -10,10 +10,14 @@ Both entry points write a *scene folder* that ``cmc train`` reads directly: ``im
 * :func:`poses_from_client` takes intrinsics and poses from a transforms.json-shaped file (ARKit /
   ARCore), validates them against the photos and, without ``near``/``far`` in the file,
   triangulates matched features with the given poses to get the depth range.
+* Aligning two reconstructions of the same photos (benchmarks against a dataset's own model):
+  :func:`similarity_from_cameras` from their cameras, or through their 3D points:
+  :func:`corresponding_points` pairs the points both see at the same pixels, and
+  :func:`register_camera` finds the pose that sees given points at given pixels.
 
 Conventions are :mod:`cmc.cameras`' (OpenCV axes, camera-to-world, pixel corner at 0). COLMAP
 stores world-to-camera poses (``cam_from_world``) with the same axes and pixel convention; the one
-conversion is :func:`cameras_from_colmap`. Depth bounds are camera z in scene units.
+conversion is :func:`_world_from_cam`. Depth bounds are camera z in scene units.
 
 Pinned: pycolmap 4.2.1 (its Python API changes between releases).
 """
@@ -25,6 +29,7 @@ import hashlib
 import json
 import re
 import shutil
+import struct
 import tempfile
 import threading
 import time
@@ -83,6 +88,8 @@ class PoseResult:
         scene_dir: the scene folder; ``cameras_path`` is its cameras.json.
         timings: stage name -> seconds (wall clock), plus 'total'.
         stats: counts and diagnostics (registered photos, 3D points, reprojection error, ...).
+        sparse: the SfM points and where the photos see them (working resolution); None for
+            client poses.
     """
 
     camera_file: CameraFile
@@ -91,6 +98,25 @@ class PoseResult:
     cameras_path: Path
     timings: dict[str, float] = field(default_factory=dict)
     stats: dict[str, Any] = field(default_factory=dict)
+    sparse: SparsePoints | None = None
+
+
+@dataclass(frozen=True)
+class SparsePoints:
+    """3D points of a reconstruction and where its photos observe them.
+
+    Attributes:
+        xyz: [P, 3] world coordinates (the frame and units of the poses).
+        pixels: [P, N, 2] pixel coordinates of each point in each of the N photos (cmc pixel
+            convention, at the cameras' resolution); NaN where a photo does not observe the point.
+    """
+
+    xyz: np.ndarray
+    pixels: np.ndarray
+
+    def seen_by(self, k: int) -> np.ndarray:
+        """[P] bool: the points photo ``k`` observes."""
+        return ~np.isnan(self.pixels[:, k, 0])
 
 
 # --- COLMAP conversion (the only place that knows COLMAP's pose direction) -------------------
@@ -119,16 +145,83 @@ def cameras_from_colmap(reconstruction: Any, image_names: Sequence[str]) -> Came
         if camera.model_name not in ("SIMPLE_PINHOLE", "PINHOLE"):
             raise CameraError(f"camera model {camera.model_name} has distortion; cmc cameras are pinhole")
         sizes.add((camera.width, camera.height))
-        cam_from_world = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)  # [3, 4]
-        R, t = cam_from_world[:, :3], cam_from_world[:, 3]
-        world_from_cam = np.eye(4)
-        world_from_cam[:3, :3], world_from_cam[:3, 3] = R.T, -R.T @ t
         Ks.append(np.asarray(camera.calibration_matrix(), dtype=np.float64))
-        poses.append(world_from_cam)
+        poses.append(_world_from_cam(image.cam_from_world()))
     if len(sizes) != 1:
         raise CameraError(f"images have different sizes: {sorted(sizes)}")
     (width, height) = sizes.pop()
     return Cameras(np.stack(Ks), np.stack(poses), width, height)
+
+
+def _world_from_cam(cam_from_world: Any) -> np.ndarray:
+    """[4, 4] camera-to-world of a COLMAP ``Rigid3d`` world-to-camera transform."""
+    m = np.asarray(cam_from_world.matrix(), dtype=np.float64)  # [3, 4]
+    R, t = m[:, :3], m[:, 3]
+    world_from_cam = np.eye(4)
+    world_from_cam[:3, :3], world_from_cam[:3, 3] = R.T, -R.T @ t
+    return world_from_cam
+
+
+def sparse_points_from_colmap(
+    reconstruction: Any, image_names: Sequence[str], pixel_scale: tuple[float, float] = (1.0, 1.0)
+) -> SparsePoints:
+    """The 3D points of a ``pycolmap.Reconstruction`` seen by the named images, with where each
+    image observes them: COLMAP's keypoints times ``pixel_scale`` (x, y), e.g. to the working size."""
+    column = {reconstruction.find_image_with_name(n).image_id: k for k, n in enumerate(image_names)}
+    scale = np.asarray(pixel_scale, dtype=np.float64)
+    xyz, pixels = [], []
+    for point in reconstruction.points3D.values():
+        seen = np.full((len(image_names), 2), np.nan)
+        for element in point.track.elements:
+            if element.image_id in column:
+                image = reconstruction.images[element.image_id]
+                seen[column[element.image_id]] = np.asarray(image.points2D[element.point2D_idx].xy) * scale
+        if not np.isnan(seen).all():
+            xyz.append(point.xyz)
+            pixels.append(seen)
+    return SparsePoints(
+        np.asarray(xyz, dtype=np.float64).reshape(-1, 3),
+        np.asarray(pixels, dtype=np.float64).reshape(-1, len(image_names), 2),
+    )
+
+
+def read_colmap_points(path: str | Path) -> np.ndarray:
+    """[P, 3] world coordinates of a COLMAP ``points3D.bin`` (tracks skipped).
+
+    Reads the file alone: pycolmap only reads whole models, and a published dataset may ship
+    ``points3D.bin`` and ``cameras.bin`` without ``images.bin`` (LLFF's ``sparse/0`` does).
+    """
+    data = Path(path).read_bytes()
+    (count,), offset = struct.unpack_from("<Q", data), 8
+    xyz = np.empty((count, 3))
+    for k in range(count):
+        # point id (u64), x y z (f64), r g b (u8), error (f64), track length (u64), track (2 x i32 each)
+        _, x, y, z, _, _, _, _, length = struct.unpack_from("<QdddBBBdQ", data, offset)
+        xyz[k] = (x, y, z)
+        offset += 51 + 8 * length
+    if offset != len(data):
+        raise ValueError(f"{path}: not a COLMAP points3D.bin ({len(data) - offset} bytes left over)")
+    return xyz
+
+
+def read_colmap_cameras(path: str | Path) -> list[Any]:
+    """The cameras of a COLMAP ``cameras.bin`` as ``pycolmap.Camera`` objects (any model; their
+    ``img_from_cam`` projects with the model's distortion)."""
+    pycolmap = _pycolmap()
+    data = Path(path).read_bytes()
+    (count,), offset = struct.unpack_from("<Q", data), 8
+    cameras = []
+    for _ in range(count):
+        camera_id, model_id, width, height = struct.unpack_from("<iiQQ", data, offset)
+        offset += 24
+        camera = pycolmap.Camera.create_from_model_id(camera_id, pycolmap.CameraModelId(model_id), 1.0, width, height)
+        n = len(camera.params)
+        camera.params = struct.unpack_from(f"<{n}d", data, offset)
+        offset += 8 * n
+        cameras.append(camera)
+    if offset != len(data):
+        raise ValueError(f"{path}: not a COLMAP cameras.bin ({len(data) - offset} bytes left over)")
+    return cameras
 
 
 # --- Near / far ------------------------------------------------------------------------------
@@ -582,8 +675,10 @@ def estimate_poses(
         sfm_names = [p.name for p in photos.sfm_paths]
         _require_all_registered(reconstruction, sfm_names, photos, matches)
         with _stage(timings, "near_far"):
-            cams_sfm = cameras_from_colmap(reconstruction, sfm_names)
-            near_far = _near_far_from_reconstruction(reconstruction, sfm_names, cams_sfm, photos)
+            cameras = cameras_from_colmap(reconstruction, sfm_names).scaled(*photos.working_size)
+            to_working = (photos.working_size[0] / photos.sfm_size[0], photos.working_size[1] / photos.sfm_size[1])
+            sparse = sparse_points_from_colmap(reconstruction, sfm_names, to_working)
+            near_far = _near_far_from_points(sparse, cameras, photos)
         stats = {
             "method": "sfm",
             "registered": len(sfm_names),
@@ -594,8 +689,9 @@ def estimate_poses(
             "single_camera": one_device,
             "pycolmap": pycolmap.__version__,
         }
-        cameras = cams_sfm.scaled(*photos.working_size)
-        return _finish(photos, scene_dir, cameras, near_far, convention, timings, stats, t_start)
+        result = _finish(photos, scene_dir, cameras, near_far, convention, timings, stats, t_start)
+        result.sparse = sparse
+        return result
 
 
 def _best_model(pycolmap: Any, work: Path, photos: _Photos, refine_focal: bool, seed: int, cancel: _Cancel) -> Any:
@@ -642,22 +738,11 @@ def _refuse_identical(photos: _Photos) -> None:
         seen[d] = k
 
 
-def _near_far_from_reconstruction(
-    reconstruction: Any, names: Sequence[str], cameras: Cameras, photos: _Photos
-) -> np.ndarray:
-    """[N, 2] depth bounds from the camera z of the 3D points each image observes."""
-    image_ids = [reconstruction.find_image_with_name(n).image_id for n in names]
-    column = {image_id: k for k, image_id in enumerate(image_ids)}
-    xyz, views = [], []
-    for point in reconstruction.points3D.values():
-        for element in point.track.elements:
-            if element.image_id in column:
-                xyz.append(point.xyz)
-                views.append(column[element.image_id])
-    xyz_arr, view_arr = np.asarray(xyz, dtype=np.float64).reshape(-1, 3), np.asarray(views, dtype=np.int64)
-    _, depth = cameras.project(xyz_arr)  # [N, P]
+def _near_far_from_points(sparse: SparsePoints, cameras: Cameras, photos: _Photos) -> np.ndarray:
+    """[N, 2] depth bounds from the camera z of the 3D points each photo observes."""
+    _, depth = cameras.project(sparse.xyz)  # [N, P]
     return np.array(
-        [depth_range(depth[k, view_arr == k], photos.label(k)) for k in range(len(names))], dtype=np.float64
+        [depth_range(depth[k, sparse.seen_by(k)], photos.label(k)) for k in range(len(cameras))], dtype=np.float64
     )
 
 
@@ -890,6 +975,79 @@ def apply_similarity_to_poses(world_from_cam: np.ndarray, scale: float, R: np.nd
 def invert_similarity(scale: float, R: np.ndarray, t: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """The similarity undoing ``X' = scale * R @ X + t``: ``X = (1/scale) * R.T @ X' - R.T @ t / scale``."""
     return 1.0 / scale, R.T, -(R.T @ t) / scale
+
+
+def corresponding_points(
+    pixels_a: np.ndarray, pixels_b: np.ndarray, max_px: float = 0.75
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of points of two reconstructions of the same photos that are the same scene point.
+
+    Point ``a`` of one reconstruction and point ``b`` of the other correspond when ``b`` lies within
+    ``max_px`` of ``a`` in every photo that observes ``a`` (at least two), and each is the other's
+    nearest in that sense (so every point is used once at most).
+
+    Args:
+        pixels_a: [P, N, 2] where the N shared photos observe reconstruction a's points (NaN: unseen),
+            e.g. :attr:`SparsePoints.pixels`.
+        pixels_b: [Q, N, 2] where the same photos see reconstruction b's points (its points projected
+            with its own cameras; NaN where unknown), same pixel grid.
+    Returns:
+        (index into a [M], index into b [M]).
+    """
+    pa, pb = np.asarray(pixels_a, np.float64), np.asarray(pixels_b, np.float64)
+    if pa.ndim != 3 or pb.ndim != 3 or pa.shape[1:] != pb.shape[1:] or pa.shape[2] != 2:
+        raise ValueError(f"need [P, N, 2] and [Q, N, 2] pixel arrays, got {pa.shape} and {pb.shape}")
+    dist = np.full((len(pa), len(pb)), np.inf)  # worst distance over the photos observing a
+    for start in range(0, len(pa), 512):  # chunks bound memory at [512, Q]
+        block = pa[start : start + 512]
+        d = np.linalg.norm(block[:, None] - pb[None], axis=-1)  # [B, Q, N]
+        seen = ~np.isnan(block[:, :, 0])  # [B, N]
+        d = np.where(seen[:, None], np.nan_to_num(d, nan=np.inf), 0.0).max(axis=2)
+        d[seen.sum(1) < 2] = np.inf
+        dist[start : start + 512] = d
+    if dist.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    best_b, best_a = dist.argmin(axis=1), dist.argmin(axis=0)
+    a = np.arange(len(pa))
+    keep = (dist[a, best_b] <= max_px) & (best_a[best_b] == a)
+    return a[keep], best_b[keep]
+
+
+def register_camera(
+    K: np.ndarray,
+    width: int,
+    height: int,
+    points: np.ndarray,
+    pixels: np.ndarray,
+    max_error_px: float = 1.0,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pose of a pinhole camera that sees the world ``points`` at ``pixels`` (absolute pose).
+
+    pycolmap's LO-RANSAC P3P with non-linear refinement, as COLMAP registers a photo into a model.
+
+    Args:
+        K: [3, 3] intrinsics (cmc pixel convention) of a ``width`` x ``height`` image.
+        points: [M, 3] world points; pixels: [M, 2] where the camera sees them.
+        max_error_px: RANSAC inlier threshold in pixels.
+    Returns:
+        world_from_cam [4, 4], inlier mask [M].
+    Raises:
+        PoseEstimationError: fewer than 6 points, or no pose fits them.
+    """
+    pycolmap = _pycolmap()
+    X, uv = np.asarray(points, np.float64).reshape(-1, 3), np.asarray(pixels, np.float64).reshape(-1, 2)
+    if len(X) != len(uv) or len(X) < 6:
+        raise PoseEstimationError(f"need at least 6 matching points and pixels, got {len(X)} and {len(uv)}")
+    camera = pycolmap.Camera.create_from_model_name(0, "PINHOLE", 1.0, int(width), int(height))
+    camera.params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+    options = pycolmap.AbsolutePoseEstimationOptions()
+    options.ransac.max_error = max_error_px
+    options.ransac.random_seed = seed
+    found = pycolmap.estimate_and_refine_absolute_pose(uv, X, camera, options)
+    if found is None or found["num_inliers"] < 6:
+        raise PoseEstimationError(f"no camera pose fits these {len(X)} points within {max_error_px} px")
+    return _world_from_cam(found["cam_from_world"]), np.asarray(found["inlier_mask"], dtype=bool)
 
 
 # --- CLI -------------------------------------------------------------------------------------

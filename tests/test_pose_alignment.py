@@ -1,14 +1,37 @@
-"""Tests of the similarity alignment of two reconstructions (cmc.poses.similarity_from_cameras and
-apply_similarity_to_poses): a known similarity applied to random cameras is recovered exactly, mapped
-poses stay rigid and keep their relative geometry (rotations, centre distances up to the scale), and
-the inverse undoes the mapping."""
+"""Tests of aligning two reconstructions (cmc.poses):
+
+* the similarity from cameras (``similarity_from_cameras``, ``apply_similarity_to_poses``): a known
+  similarity applied to random cameras is recovered exactly, mapped poses stay rigid and keep their
+  relative geometry, and the inverse undoes the mapping;
+* registration through the structure: ``corresponding_points`` pairs the points two reconstructions
+  see at the same pixels of the shared photos, ``register_camera`` recovers a known pose from points
+  and pixels (outliers included), and the COLMAP readers give back what pycolmap wrote and the
+  known fern model (skipped without the shared data).
+"""
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
+from helpers import rigid, rotation
 
-from cmc.poses import apply_similarity_to_poses, invert_similarity, similarity_from_cameras
+from cmc.cameras import Cameras, cameras_from_llff
+from cmc.poses import (
+    PoseEstimationError,
+    apply_similarity_to_poses,
+    corresponding_points,
+    invert_similarity,
+    read_colmap_cameras,
+    read_colmap_points,
+    register_camera,
+    similarity_from_cameras,
+)
+
+SHARED_DIR = Path(os.environ.get("CMC_SHARED_DIR") or Path(__file__).resolve().parents[1].parent / "shared")
+FERN_SPARSE = SHARED_DIR / "datasets" / "llff" / "fern" / "sparse" / "0"
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -101,3 +124,97 @@ def test_bad_input_is_refused() -> None:
         similarity_from_cameras(same, same)
     with pytest.raises(ValueError, match="same N"):
         similarity_from_cameras(same, same[:2])
+
+
+# --- Registration through the structure ------------------------------------------------------
+
+
+def forward_cameras(n: int, width: int = 160, height: int = 120) -> Cameras:
+    """n cameras side by side looking along +z (world), slightly turned, focal 150 px."""
+    K = np.array([[150.0, 0, width / 2], [0, 150.0, height / 2], [0, 0, 1]])
+    poses = [rigid(rotation([0, 1, 0.2], 0.03 * (k - n / 2)), [0.3 * k, 0.05 * k, 0]) for k in range(n)]
+    return Cameras(np.repeat(K[None], n, 0), np.stack(poses), width, height)
+
+
+def scene_points(rng: np.random.Generator, count: int) -> np.ndarray:
+    """[count, 3] points 2-8 units in front of forward_cameras, inside their views."""
+    z = rng.uniform(2.0, 8.0, count)
+    return np.stack([rng.uniform(-0.4, 0.6, count) * z, rng.uniform(-0.3, 0.3, count) * z, z], 1)
+
+
+def test_register_camera_recovers_a_known_pose_despite_outliers() -> None:
+    rng = np.random.default_rng(0)
+    cam = forward_cameras(3)[1]
+    X = scene_points(rng, 300)
+    uv, _ = cam.project(X)
+    uv = uv[0] + rng.normal(scale=0.1, size=(300, 2))
+    uv[:30] += rng.uniform(5, 40, size=(30, 2))  # 10 % wrong matches
+    pose, inliers = register_camera(cam.K[0], cam.width, cam.height, X, uv)
+    assert rotation_angle_deg(pose[:3, :3], cam.world_from_cam[0, :3, :3]) < 0.05
+    assert np.linalg.norm(pose[:3, 3] - cam.world_from_cam[0, :3, 3]) < 0.01
+    assert not inliers[:30].any() and inliers[30:].mean() > 0.95
+    # a point lands where the registered camera must see it
+    found = Cameras(cam.K, pose[None], cam.width, cam.height)
+    assert np.abs(found.project(X[30:])[0][0] - uv[30:]).max() < 0.6
+    with pytest.raises(PoseEstimationError, match="at least 6"):
+        register_camera(cam.K[0], cam.width, cam.height, X[:5], uv[:5])
+
+
+def test_corresponding_points_pairs_the_same_scene_points() -> None:
+    rng = np.random.default_rng(1)
+    cams = forward_cameras(3)
+    X = scene_points(rng, 200)
+    # reconstruction a: its points in another frame, observed with keypoint noise; a third of them
+    # by one photo only (they cannot be paired), some not by the last photo
+    seen = np.asarray(cams.project(X)[0]).transpose(1, 0, 2) + rng.normal(scale=0.1, size=(200, 3, 2))
+    seen[:60, 1:] = np.nan
+    seen[60:100, 2] = np.nan
+    # reconstruction b: the same points shuffled, its own (exact) cameras, plus unrelated points
+    extra = scene_points(rng, 150) + [0.0, 0.0, 0.5]
+    order = rng.permutation(350)
+    X_b = np.concatenate([X, extra])[order]
+    pixels_b = np.asarray(cams.project(X_b)[0]).transpose(1, 0, 2)
+    ia, ib = corresponding_points(seen, pixels_b, max_px=0.75)
+    truth = np.argsort(order)[:200]  # where point k of X went in X_b
+    assert set(ia) == set(range(60, 200))
+    np.testing.assert_array_equal(ib, truth[ia])
+    # nothing pairs with a tolerance below the keypoint noise; bad shapes are refused
+    assert len(corresponding_points(seen, pixels_b, max_px=0.01)[0]) < 5
+    with pytest.raises(ValueError, match="pixel arrays"):
+        corresponding_points(seen, pixels_b[:, :2])
+
+
+def test_colmap_readers_read_what_pycolmap_writes(tmp_path: Path) -> None:
+    pycolmap = pytest.importorskip("pycolmap")
+    model = pycolmap.Reconstruction()
+    camera = pycolmap.Camera.create_from_model_name(3, "OPENCV", 100.0, 64, 48)
+    camera.params = [101.0, 99.0, 31.5, 24.5, 0.01, -0.002, 0.0003, 0.0004]
+    model.add_camera(camera)
+    xyz = np.array([[1.0, 2.0, 3.0], [-1.0, 0.5, 7.0], [0.25, -4.0, 9.5]])
+    for p in xyz:
+        model.add_point3D(p, pycolmap.Track())
+    model.write_binary(str(tmp_path))
+    got = read_colmap_points(tmp_path / "points3D.bin")
+    np.testing.assert_array_equal(got[np.argsort(got[:, 2])], xyz)
+    (cam,) = read_colmap_cameras(tmp_path / "cameras.bin")
+    assert (cam.model_name, cam.width, cam.height, cam.camera_id) == ("OPENCV", 64, 48, 3)
+    np.testing.assert_array_equal(cam.params, camera.params)
+    with pytest.raises(ValueError, match="not a COLMAP points3D.bin"):
+        read_colmap_points(tmp_path / "cameras.bin")
+
+
+@pytest.mark.skipif(not FERN_SPARSE.is_dir(), reason=f"shared dataset absent: {FERN_SPARSE}")
+def test_fern_sparse_model_lies_in_the_dataset_frame() -> None:
+    """The LLFF model (points3D.bin with tracks, cameras.bin, no images.bin) read as a known answer:
+    its camera is the poses file's focal with radial distortion, and its points lie in front of
+    every dataset camera within the depth bounds LLFF derived from them."""
+    xyz = read_colmap_points(FERN_SPARSE / "points3D.bin")
+    (camera,) = read_colmap_cameras(FERN_SPARSE / "cameras.bin")
+    pb = np.load(FERN_SPARSE.parents[1] / "poses_bounds.npy")
+    cams, bounds = cameras_from_llff(pb, 4032, 3024)
+    assert len(xyz) == 10091 and camera.model_name == "SIMPLE_RADIAL"
+    assert camera.params[0] == pytest.approx(cams.K[0, 0, 0], rel=1e-6) and 0 < camera.params[3] < 0.05
+    _, depth = cams.project(xyz)  # [20, P]
+    assert (depth > 0).mean() > 0.999
+    lo, hi = np.percentile(depth, [1, 99], axis=1)
+    assert (lo > 0.9 * bounds[:, 0]).all() and (hi < 1.1 * bounds[:, 1]).all()

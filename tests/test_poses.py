@@ -30,6 +30,7 @@ from cmc.poses import (
     depth_range,
     estimate_poses,
     poses_from_client,
+    similarity_from_cameras,
     triangulate_pair,
 )
 
@@ -231,6 +232,18 @@ def test_sfm_recovers_known_cameras(scene, tmp_path: Path) -> None:
     assert (nf[:, 1] > 6.0).all() and (nf[:, 1] < 9.0).all(), nf
     assert {"intake", "features", "matching", "mapping", "near_far", "write", "total"} <= set(result.timings)
     assert result.stats["registered"] == 3 and result.stats["focal_prior"] == ["35mm-equivalent"] * 3
+    # the sparse points: each lands where its photos observed it (working resolution), and mapped
+    # into the true frame it lies on one of the layers (world z = the layer's depth)
+    sparse = result.sparse
+    assert sparse is not None and len(sparse.xyz) == result.stats["points3D"] > 100
+    uv, _ = est.project(sparse.xyz)  # [N, P, 2]
+    error = np.linalg.norm(uv.transpose(1, 0, 2) - sparse.pixels, axis=-1)[~np.isnan(sparse.pixels[..., 0])]
+    assert np.median(error) < 0.3 and np.percentile(error, 95) < 1.5, np.percentile(error, [50, 95])
+    assert all(sparse.seen_by(k).sum() > 50 for k in range(3))
+    s, R, t = similarity_from_cameras(est.world_from_cam, cams.world_from_cam)
+    z = (s * sparse.xyz @ R.T + t)[:, 2]
+    layer_z = np.array([layer.z for layer in DEFAULT_LAYERS])
+    assert np.median(np.abs(z[:, None] - layer_z).min(1) / z) < 0.01
     # the folder is a trainable scene: images at the working size + cameras.json with near/far
     loaded = load_scene_folder(result.scene_dir)
     assert loaded.images.shape == (3, H, W, 3)
