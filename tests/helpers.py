@@ -1,16 +1,21 @@
-"""Small builders shared by the tests: poses, and synthetic scene uploads for the service."""
+"""Small builders shared by the tests: poses, synthetic scene uploads for the service, and where the
+shared data lies (``$CMC_SHARED_DIR``, else ``../shared`` beside the checkout)."""
 
 from __future__ import annotations
 
 import io
 import json
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
 from cmc.cameras import CameraFile, Cameras, camera_file_to_dict
 from cmc.datasets import Scene, synthetic_cameras, synthetic_scene
+
+SHARED_DIR = Path(os.environ.get("CMC_SHARED_DIR") or Path(__file__).resolve().parents[1].parent / "shared")
 
 
 def rotation(axis, angle: float) -> np.ndarray:

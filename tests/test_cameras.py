@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import rigid, rotation
+from helpers import SHARED_DIR, rigid, rotation
 
 from cmc.cameras import (
     CameraError,
@@ -30,7 +29,6 @@ from cmc.cameras import (
     save_camera_file,
 )
 
-SHARED_DIR = Path(os.environ.get("CMC_SHARED_DIR") or Path(__file__).resolve().parents[1].parent / "shared")
 FERN_POSES = SHARED_DIR / "datasets" / "llff" / "fern" / "poses_bounds.npy"
 
 # LLFF's full-resolution iPhone X size and focal (fern), and the few-shot protocol's resolution.

@@ -6,11 +6,11 @@ is skipped when the shared folder (``$CMC_SHARED_DIR`` or ``../shared``) is abse
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import SHARED_DIR
 from PIL import ExifTags, Image
 
 from cmc.datasets import SceneError
@@ -23,7 +23,6 @@ from cmc.images import (
     resized_size,
 )
 
-SHARED_DIR = Path(os.environ.get("CMC_SHARED_DIR") or Path(__file__).resolve().parents[1].parent / "shared")
 FERN_JPEG = SHARED_DIR / "datasets" / "llff" / "fern" / "images" / "IMG_4027.JPG"
 
 

@@ -8,17 +8,16 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from helpers import SHARED_DIR
 from PIL import Image
 
 from cmc.metrics import LPIPS, LPIPS_DIR_ENV, image_metrics, psnr, ssim
 
-SHARED_DIR = Path(os.environ.get("CMC_SHARED_DIR") or Path(__file__).resolve().parents[1].parent / "shared")
 REFERENCE_FILE = SHARED_DIR / "reference" / "metric_reference.json"
 WEIGHTS_DIR = SHARED_DIR / "weights"
 

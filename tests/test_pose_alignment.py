@@ -11,12 +11,11 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import rigid, rotation
+from helpers import SHARED_DIR, rigid, rotation
 
 from cmc.cameras import Cameras, cameras_from_llff
 from cmc.poses import (
@@ -30,7 +29,6 @@ from cmc.poses import (
     similarity_from_cameras,
 )
 
-SHARED_DIR = Path(os.environ.get("CMC_SHARED_DIR") or Path(__file__).resolve().parents[1].parent / "shared")
 FERN_SPARSE = SHARED_DIR / "datasets" / "llff" / "fern" / "sparse" / "0"
 
 

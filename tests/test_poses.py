@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import SHARED_DIR, rotation
 from PIL import ExifTags, Image, ImageDraw, ImageFilter
 
 from cmc.cameras import CameraError, CameraFile, Cameras, camera_file_to_dict, cameras_from_llff
@@ -36,7 +36,6 @@ from cmc.poses import (
 
 pycolmap = pytest.importorskip("pycolmap")
 
-SHARED_DIR = Path(os.environ.get("CMC_SHARED_DIR") or Path(__file__).resolve().parents[1].parent / "shared")
 FERN = SHARED_DIR / "datasets" / "llff" / "fern"
 W, H = 320, 240
 FOCAL_35MM = 37  # EXIF prior written into the rendered PNGs; synthetic_cameras' 50 degree FOV is ~37.1 mm
@@ -141,12 +140,6 @@ def client_dict(cams: Cameras, paths: list[Path], convention: str = "opengl") ->
 
 
 # --- COLMAP conversion, triangulation, depth range ---------------------------------------------
-
-
-def rotation(axis, angle: float) -> np.ndarray:
-    a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-    Kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(angle) * Kx + (1 - math.cos(angle)) * Kx @ Kx
 
 
 @pytest.mark.parametrize(
