@@ -166,7 +166,8 @@ def main() -> None:
             "intrinsics. Method and caveats: `bench/poses_e2e.md`.\n",
             f"- pose estimation: {e2e['pose_estimation']['wall_seconds']:.1f} s",
             f"- correspondences: {st['corresponding_points']} of {st['sfm_points']} SfM points "
-            f"(dataset model: {st['dataset_points']} points, {st['dataset_camera']})",
+            f"(dataset model: {st['dataset_points']} points); registration inliers per held-out view "
+            + ", ".join(f"{v['view']}: {v['inliers']}/{v['points']}" for v in st["test_views"]),
             "- control, training views registered the same way vs their own SfM poses: rotation "
             f"{max(c['rotation_vs_sfm_deg'] for c in control):.3f} deg and centre "
             f"{max(c['centre_vs_sfm_fraction_of_baseline'] for c in control):.4f} of the mean baseline at worst "

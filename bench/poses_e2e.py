@@ -195,7 +195,7 @@ def register_through_structure(data: Path, split: LLFFSplit, est: PoseResult) ->
         "dataset_points": len(xyz_gt),
         "sfm_points": len(est.sparse.xyz),
         "corresponding_points": len(ia),
-        "dataset_camera": f"{camera.model_name} {list(np.round(camera.params, 6))} at {w}x{h}",
+        "dataset_camera": {"model": camera.model_name, "params": [float(x) for x in camera.params], "size": [w, h]},
         "control_train_views": control,
         "test_views": test,
     }
