@@ -592,6 +592,7 @@ def _finish(
     timings: _Timings,
     stats: dict[str, Any],
     t_start: float,
+    sparse: SparsePoints | None = None,
 ) -> PoseResult:
     """Write cameras.json (working resolution) last, so a scene folder with it is complete."""
     with _stage(timings, "write"):
@@ -600,7 +601,7 @@ def _finish(
         path = scene_dir / CAMERAS_FILE
         save_camera_file(camera_file, path, convention)
     timings["total"] = time.perf_counter() - t_start
-    return PoseResult(camera_file, list(photos.working_paths), scene_dir, path, timings, stats)
+    return PoseResult(camera_file, list(photos.working_paths), scene_dir, path, timings, stats, sparse)
 
 
 def _prepare_scene_dir(scene_dir: str | Path) -> Path:
@@ -689,9 +690,7 @@ def estimate_poses(
             "single_camera": one_device,
             "pycolmap": pycolmap.__version__,
         }
-        result = _finish(photos, scene_dir, cameras, near_far, convention, timings, stats, t_start)
-        result.sparse = sparse
-        return result
+        return _finish(photos, scene_dir, cameras, near_far, convention, timings, stats, t_start, sparse)
 
 
 def _best_model(pycolmap: Any, work: Path, photos: _Photos, refine_focal: bool, seed: int, cancel: _Cancel) -> Any:
