@@ -15,9 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import SHARED_DIR, rigid, rotation
+from helpers import SHARED_DIR
 
 from cmc.cameras import Cameras, cameras_from_llff
+from cmc.datasets import synthetic_cameras
 from cmc.poses import (
     PoseEstimationError,
     apply_similarity_to_poses,
@@ -127,22 +128,15 @@ def test_bad_input_is_refused() -> None:
 # --- Registration through the structure ------------------------------------------------------
 
 
-def forward_cameras(n: int, width: int = 160, height: int = 120) -> Cameras:
-    """n cameras side by side looking along +z (world), slightly turned, focal 150 px."""
-    K = np.array([[150.0, 0, width / 2], [0, 150.0, height / 2], [0, 0, 1]])
-    poses = [rigid(rotation([0, 1, 0.2], 0.03 * (k - n / 2)), [0.3 * k, 0.05 * k, 0]) for k in range(n)]
-    return Cameras(np.repeat(K[None], n, 0), np.stack(poses), width, height)
-
-
 def scene_points(rng: np.random.Generator, count: int) -> np.ndarray:
-    """[count, 3] points 2-8 units in front of forward_cameras, inside their views."""
+    """[count, 3] points 2-8 units in front of ``synthetic_cameras``, inside their views."""
     z = rng.uniform(2.0, 8.0, count)
-    return np.stack([rng.uniform(-0.4, 0.6, count) * z, rng.uniform(-0.3, 0.3, count) * z, z], 1)
+    return np.stack([rng.uniform(-0.4, 0.4, count) * z, rng.uniform(-0.3, 0.3, count) * z, z], 1)
 
 
 def test_register_camera_recovers_a_known_pose_despite_outliers() -> None:
     rng = np.random.default_rng(0)
-    cam = forward_cameras(3)[1]
+    cam = synthetic_cameras(3, 160, 120, baseline=0.6)[1]
     X = scene_points(rng, 300)
     uv, _ = cam.project(X)
     uv = uv[0] + rng.normal(scale=0.1, size=(300, 2))
@@ -160,7 +154,7 @@ def test_register_camera_recovers_a_known_pose_despite_outliers() -> None:
 
 def test_corresponding_points_pairs_the_same_scene_points() -> None:
     rng = np.random.default_rng(1)
-    cams = forward_cameras(3)
+    cams = synthetic_cameras(3, 160, 120, baseline=0.6)
     X = scene_points(rng, 200)
     # reconstruction a: its points in another frame, observed with keypoint noise; a third of them
     # by one photo only (they cannot be paired), some not by the last photo
