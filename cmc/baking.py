@@ -209,8 +209,10 @@ class BakedScene:
         width: int | None = None,
         height: int | None = None,
         min_weight: float = 0.0,
+        mpi_index: int | None = None,
     ) -> ImageOutput:
-        """Colour and depth for any camera (OpenCV convention), default size the input size."""
+        """Colour and depth for any camera (OpenCV convention), default size the input size;
+        the blend of all MPIs, or MPI ``mpi_index`` alone."""
         return render_image(
             self.fields,
             self.frames,
@@ -218,5 +220,6 @@ class BakedScene:
             world_from_cam,
             width or self.width,
             height or self.height,
+            mpi_index,
             min_weight=min_weight,
         )

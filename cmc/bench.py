@@ -23,8 +23,9 @@ import torch
 
 from cmc.baking import BakedScene, bake
 from cmc.config import TrainConfig
-from cmc.datasets import load_llff, save_image
-from cmc.metrics import image_metrics
+from cmc.datasets import Scene, load_llff, save_image, wide_baseline_split
+from cmc.diagnostics import contact_sheet, depth_error_map, depth_preview, error_map
+from cmc.metrics import image_metrics, psnr
 from cmc.training import Progress, Trainer
 
 METRICS = ("psnr", "ssim", "lpips_alex", "lpips_vgg")
@@ -67,33 +68,62 @@ def bench_scene(
 ) -> dict[str, Any]:
     """Train, bake and evaluate one LLFF scene; returns its record."""
     split = load_llff(scene_dir)
-    t0 = time.perf_counter()  # training time includes building the model (plane sweep)
-    trainer = Trainer(split.train, cfg, device)
-    trainer.fit(on_progress=on_progress)
-    if device.type == "cuda":
-        torch.cuda.synchronize()
-    train_s = time.perf_counter() - t0
+    trainer, train_s = _train(split.train, cfg, device, on_progress)
     record: dict[str, Any] = {"scene": scene_dir.name, "train_views": split.train_ids, "test_views": split.test_ids}
+    names = [f"test_{i:03d}" for i in split.test_ids]
     with tempfile.TemporaryDirectory() as tmp:
         for merge in (1, 2):  # all planes, then adjacent planes merged in pairs (faster renders)
             out_dir = (save_dir or Path(tmp)) / ("baked" if merge == 1 else f"baked_merge{merge}")
             baked = BakedScene.load(bake(trainer.model, out_dir, merge=merge), device)
-            scores = _score_baked(baked, split, device, lpips_dir, render_repeats, save_dir if merge == 1 else None)
+            per_view, times = score_views(
+                baked, split.test, names, device, lpips_dir, render_repeats, save_dir if merge == 1 else None
+            )
+            for v, i in zip(per_view, split.test_ids, strict=True):
+                v["view"] = i
+            scores = {**_means(per_view), "render_ms_median": 1000 * statistics.median(times)}
             if merge == 1:
-                record.update(scores)
+                record.update(scores, num_planes_baked=len(baked.frames[0].depths), views=per_view)
             else:
-                record[f"merge{merge}"] = {k: scores[k] for k in (*METRICS, "render_ms_median")}
+                record[f"merge{merge}"] = scores
     record["train_seconds"] = train_s
     return record
 
 
-def _score_baked(
-    baked: BakedScene, split, device: torch.device, lpips_dir: str | None, repeats: int, save_dir: Path | None
-) -> dict[str, Any]:
-    """Render every held-out view ``repeats`` times; mean metrics and the median render time."""
+def _train(
+    scene: Scene, cfg: TrainConfig, device: torch.device, on_progress: Callable[[Progress], None] | None
+) -> tuple[Trainer, float]:
+    """Train on ``scene``; the seconds include building the model (plane sweep)."""
+    t0 = time.perf_counter()
+    trainer = Trainer(scene, cfg, device)
+    trainer.fit(on_progress=on_progress)
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    return trainer, time.perf_counter() - t0
+
+
+def _means(per_view: list[dict[str, Any]]) -> dict[str, float]:
+    keys = [k for k in (*METRICS, "depth_rel_error") if k in per_view[0]]
+    return {k: float(np.mean([v[k] for v in per_view])) for k in keys}
+
+
+def score_views(
+    baked: BakedScene,
+    test: Scene,
+    names: list[str],
+    device: torch.device,
+    lpips_dir: str | None,
+    repeats: int,
+    save_dir: Path | None,
+) -> tuple[list[dict[str, Any]], list[float]]:
+    """Render every test view ``repeats`` times with the baked renderer and score it.
+
+    Returns one record per view (PSNR / SSIM / LPIPS, and ``depth_rel_error``, the median of
+    |z - z_gt| / z_gt over pixels, where the test scene has depth) and all render times (s).
+    With ``save_dir``: ``<name>.png`` (the render) and ``<name>_sheet.png``
+    (:func:`diagnostic_sheet`) per view.
+    """
     per_view, times = [], []
-    test = split.test
-    for k in range(len(test)):
+    for k, name in enumerate(names):
         K, pose = test.cameras.K[k], test.cameras.world_from_cam[k]
         for _ in range(repeats):
             t = time.perf_counter()
@@ -102,15 +132,42 @@ def _score_baked(
                 torch.cuda.synchronize()
             times.append(time.perf_counter() - t)
         pred = out.rgb.cpu().numpy()
-        per_view.append({"view": split.test_ids[k], **image_metrics(pred, test.images[k], lpips_dir)})
+        rec: dict[str, Any] = {"name": name, **image_metrics(pred, test.images[k], lpips_dir)}
+        gt_depth = None if test.depths is None else test.depths[k]
+        if gt_depth is not None:
+            rec["depth_rel_error"] = float(np.median(np.abs(out.depth.cpu().numpy() - gt_depth) / gt_depth))
+        per_view.append(rec)
         if save_dir:
-            save_image(save_dir / f"test_{split.test_ids[k]:03d}.png", pred)
-    return {
-        **{k: float(np.mean([v[k] for v in per_view])) for k in METRICS},
-        "render_ms_median": 1000 * statistics.median(times),
-        "num_planes_baked": len(baked.frames[0].depths),
-        "views": per_view,
-    }
+            save_image(save_dir / f"{name}.png", pred)
+            save_image(save_dir / f"{name}_sheet.png", diagnostic_sheet(baked, K, pose, test.images[k], gt_depth))
+    return per_view, times
+
+
+def diagnostic_sheet(
+    baked: BakedScene, K: np.ndarray, pose: np.ndarray, gt: np.ndarray, gt_depth: np.ndarray | None = None
+) -> np.ndarray:
+    """One picture of a test view: where its error lives and which MPI it comes from.
+
+    Row 1: ground truth, the blended render, its colour error (white = 0.25 mean abs error),
+    and its depth error where ``gt_depth`` is given (white = 25 % relative). Row 2: each MPI's
+    own render with its PSNR. Row 3: each MPI's depth, the blended depth, the true depth.
+    """
+    near, far = baked.near, baked.far
+    blended = baked.render(K, pose)
+    rgb, depth = blended.rgb.cpu().numpy(), blended.depth.cpu().numpy()
+    row1 = [("truth", gt), (f"blend {psnr(rgb, gt):.2f} dB", rgb), ("|error|", error_map(rgb, gt))]
+    if gt_depth is not None:
+        row1.append(("depth error", depth_error_map(depth, gt_depth)))
+    row2, row3 = [], []
+    for i in range(len(baked.fields)):
+        o = baked.render(K, pose, mpi_index=i)
+        r = o.rgb.cpu().numpy()
+        row2.append((f"MPI {i} {psnr(r, gt):.2f} dB", r))
+        row3.append((f"MPI {i} depth", depth_preview(o.depth.cpu().numpy(), near, far)))
+    row3.append(("blend depth", depth_preview(depth, near, far)))
+    if gt_depth is not None:
+        row3.append(("true depth", depth_preview(gt_depth, near, far)))
+    return contact_sheet([row1, row2, row3])
 
 
 def run_llff_bench(
@@ -133,6 +190,14 @@ def run_llff_bench(
     keys = (*METRICS, "train_seconds", "render_ms_median")
     return {
         "protocol": "LLFF images_8, test = index % 8 == 0, 3 train views evenly from the rest (RegNeRF)",
+        **_report_header(cfg, device),
+        "scenes": records,
+        "mean": {k: float(np.mean([r[k] for r in records])) for k in keys},
+    }
+
+
+def _report_header(cfg: TrainConfig, device: torch.device) -> dict[str, Any]:
+    return {
         "preset": cfg.preset,
         "config": cfg.to_dict(),
         "device": torch.cuda.get_device_name(device)
@@ -141,9 +206,69 @@ def run_llff_bench(
         "git_commit": git_commit(),
         "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d"),
         "peak_memory_mb": peak_memory_mb(device),
-        "scenes": records,
-        "mean": {k: float(np.mean([r[k] for r in records])) for k in keys},
     }
+
+
+SYNTHETIC_KINDS = ("halfway", "near")
+
+
+def run_synthetic_bench(
+    scenes: list[str],
+    cfg: TrainConfig,
+    device: torch.device,
+    lpips_dir: str | None,
+    save_dir: Path | None = None,
+    on_progress: Callable[[str, Progress], None] | None = None,
+    render_repeats: int = 3,
+) -> dict[str, Any]:
+    """The wide-baseline synthetic set (:func:`cmc.datasets.wide_baseline_split`): train on each
+    scene's three inputs, bake, and score the halfway and the near test views separately
+    (colour metrics and the median relative depth error against the exact depth)."""
+    records = []
+    for name in scenes:
+        split = wide_baseline_split(name)
+        hook = (lambda p, n=name: on_progress(n, p)) if on_progress else None
+        trainer, train_s = _train(split.train, cfg, device, hook)
+        sd = save_dir / name if save_dir else None
+        with tempfile.TemporaryDirectory() as tmp:
+            baked = BakedScene.load(bake(trainer.model, (sd or Path(tmp)) / "baked"), device)
+            per_view, times = score_views(baked, split.test, split.test.names, device, lpips_dir, render_repeats, sd)
+        for v, kind in zip(per_view, split.test_kinds, strict=True):
+            v["kind"] = kind
+        rec: dict[str, Any] = {"scene": name, "train_seconds": train_s}
+        rec["render_ms_median"] = 1000 * statistics.median(times)
+        for kind in SYNTHETIC_KINDS:
+            rec[kind] = _means([v for v in per_view if v["kind"] == kind])
+        rec["views"] = per_view
+        records.append(rec)
+    mean = {
+        kind: {k: float(np.mean([r[kind][k] for r in records])) for k in records[0][kind]} for kind in SYNTHETIC_KINDS
+    }
+    for k in ("train_seconds", "render_ms_median"):
+        mean[k] = float(np.mean([r[k] for r in records]))
+    return {
+        "protocol": "wide-baseline synthetic scenes (cmc.datasets.wide_baseline_split), 252x189, 3 input views; "
+        "test views halfway between two inputs and near each input",
+        **_report_header(cfg, device),
+        "scenes": records,
+        "mean": mean,
+    }
+
+
+def synthetic_markdown_table(report: dict[str, Any]) -> str:
+    """One row per scene and kind of test view, then the means."""
+    head = (
+        "| scene | views | PSNR | SSIM | LPIPS-alex | LPIPS-vgg | depth rel. error | train s | render ms |\n"
+        "|---|---|---|---|---|---|---|---|---|\n"
+    )
+    row = "| {} | {} | {:.2f} | {:.3f} | {:.3f} | {:.3f} | {:.3f} | {:.0f} | {:.0f} |\n"
+    rows = []
+    for r in [*report["scenes"], {"scene": "**mean**", **report["mean"]}]:
+        for kind in SYNTHETIC_KINDS:
+            m = r[kind]
+            cols = (*(m[k] for k in (*METRICS, "depth_rel_error")), r["train_seconds"], r["render_ms_median"])
+            rows.append(row.format(r["scene"], kind, *cols))
+    return head + "".join(rows)
 
 
 def markdown_table(report: dict[str, Any]) -> str:
@@ -164,6 +289,8 @@ def markdown_table(report: dict[str, Any]) -> str:
 
 
 def write_report(report: dict[str, Any], out: Path) -> None:
+    """The report as JSON at ``out`` and its markdown table beside it (.md)."""
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1))
-    out.with_suffix(".md").write_text(markdown_table(report))
+    table = synthetic_markdown_table if "halfway" in report["mean"] else markdown_table
+    out.with_suffix(".md").write_text(table(report))

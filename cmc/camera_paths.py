@@ -25,7 +25,7 @@ from typing import Literal
 
 import numpy as np
 
-from cmc.cameras import Cameras, nearest_rotation
+from cmc.cameras import Cameras, look_at, nearest_rotation
 
 PathKind = Literal["spiral", "orbit", "dolly"]
 PATH_KINDS: tuple[str, ...] = ("spiral", "orbit", "dolly")
@@ -62,18 +62,6 @@ def _with_center(mean: np.ndarray, offset_cam: np.ndarray) -> np.ndarray:
     p = mean.copy()
     p[:3, 3] = mean[:3, 3] + mean[:3, :3] @ offset_cam
     return p
-
-
-def _look_at(center: np.ndarray, target: np.ndarray, down: np.ndarray) -> np.ndarray:
-    """[4, 4] pose at ``center`` with +z towards ``target`` and +y as close to ``down`` as possible."""
-    z = target - center
-    z = z / np.linalg.norm(z)
-    x = np.cross(down, z)
-    x = x / np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    pose[:3, 3] = center
-    return pose
 
 
 def _angles(num_frames: int, turns: float = 1.0) -> np.ndarray:
@@ -121,7 +109,7 @@ def camera_path(kind: PathKind, world_from_cam: np.ndarray, near: float, far: fl
         poses = []
         for a in _angles(num_frames, turns=2.0):
             c = mean[:3, :3] @ np.array([rx * np.cos(a), -ry * np.sin(a), rz * np.sin(0.5 * a)]) + mean[:3, 3]
-            poses.append(_look_at(c, target, down))
+            poses.append(look_at(c, target, down))
         return np.stack(poses)
     raise ValueError(f"unknown camera path {kind!r}; use one of {', '.join(PATH_KINDS)}")
 

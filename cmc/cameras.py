@@ -134,6 +134,20 @@ def nearest_rotation(M: np.ndarray) -> np.ndarray:
     return R
 
 
+def look_at(center: np.ndarray, target: np.ndarray, down: np.ndarray = (0.0, 1.0, 0.0)) -> np.ndarray:
+    """[4, 4] world_from_cam at ``center`` with +z towards ``target`` and +y as close to ``down``
+    as possible (OpenCV axes: x right, y down, z forward)."""
+    center, target, down = (np.asarray(a, dtype=np.float64) for a in (center, target, down))
+    z = target - center
+    z = z / np.linalg.norm(z)
+    x = np.cross(down, z)
+    x = x / np.linalg.norm(x)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    pose[:3, 3] = center
+    return pose
+
+
 def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """[3, 3] pinhole intrinsics in pixels."""
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])

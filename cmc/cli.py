@@ -17,8 +17,8 @@ from tqdm import tqdm
 from cmc.baking import BakedFormatError, BakedScene, bake
 from cmc.camera_paths import PATH_KINDS
 from cmc.cameras import CameraError, load_camera_file
-from cmc.config import PRESETS, preset_config
-from cmc.datasets import SceneError, load_scene_folder, save_image
+from cmc.config import PRESETS, preset_config, with_settings
+from cmc.datasets import WIDE_SCENES, SceneError, load_scene_folder, save_image
 from cmc.poses import register_cli
 from cmc.training import Progress, Trainer, TrainingCancelled
 
@@ -48,7 +48,7 @@ def _device(name: str) -> torch.device:
 
 def _config(args: argparse.Namespace):
     overrides = {k: v for k, v in (("steps", args.steps), ("seed", args.seed)) if v is not None}
-    return preset_config(args.preset, **overrides)
+    return with_settings(preset_config(args.preset, **overrides), getattr(args, "set", None) or [])
 
 
 def cmd_train(args: argparse.Namespace) -> None:
@@ -91,7 +91,7 @@ def cmd_render(args: argparse.Namespace) -> None:
     cams = load_camera_file(args.cameras)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    from cmc.demo import depth_preview
+    from cmc.diagnostics import depth_preview
 
     for i, name in enumerate(tqdm(cams.file_paths, desc="render", unit="view")):
         c = cams.cameras[i]
@@ -133,10 +133,10 @@ ABLATIONS = {
 
 
 def cmd_bench(args: argparse.Namespace) -> None:
-    from cmc.bench import markdown_table, run_llff_bench, write_report
+    from cmc.bench import run_llff_bench, run_synthetic_bench, write_report
 
-    if args.dataset != "llff":
-        raise ValueError(f"unknown benchmark {args.dataset!r}; only 'llff' exists")
+    if args.dataset == "llff" and not args.data:
+        raise ValueError("the llff benchmark needs --data (the folder holding the LLFF scene folders)")
     lpips_dir = args.lpips_weights or os.environ.get("CMC_LPIPS_DIR")
     if not lpips_dir:
         raise ValueError("LPIPS weights needed: pass --lpips-weights DIR or set CMC_LPIPS_DIR")
@@ -154,7 +154,12 @@ def cmd_bench(args: argparse.Namespace) -> None:
             bar[scene](p)
 
         save = Path(args.save_dir) / (args.preset + suffix) if args.save_dir else None
-        report = run_llff_bench(Path(args.data), args.scenes.split(","), cfg, device, lpips_dir, save, hook)
+        if args.dataset == "llff":
+            scenes = (args.scenes or "fern").split(",")
+            report = run_llff_bench(Path(args.data), scenes, cfg, device, lpips_dir, save, hook)
+        else:
+            scenes = args.scenes.split(",") if args.scenes else list(WIDE_SCENES)
+            report = run_synthetic_bench(scenes, cfg, device, lpips_dir, save, hook)
         for b in bar.values():
             b.close()
         if suffix:
@@ -162,7 +167,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
         out = Path(args.out)
         out = out.with_name(out.stem + suffix + out.suffix)
         write_report(report, out)
-        print(markdown_table(report))
+        print(out.with_suffix(".md").read_text())
         print(f"wrote {out} and {out.with_suffix('.md')}")
 
 
@@ -214,15 +219,23 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--fps", type=float, help="video frames per second (default 30)")
     r.set_defaults(func=cmd_render)
 
-    b = sub.add_parser("bench", help="benchmark on a dataset with the paper's protocol")
-    b.add_argument("dataset", choices=["llff"])
-    b.add_argument("--data", required=True, help="folder holding the LLFF scene folders")
-    b.add_argument("--scenes", default="fern", help="comma-separated scene names (default fern)")
+    b = sub.add_parser("bench", help="benchmark: LLFF with the paper's protocol, or the wide-baseline synthetic scenes")
+    b.add_argument("dataset", choices=["llff", "synthetic"])
+    b.add_argument("--data", help="llff: folder holding the LLFF scene folders")
+    b.add_argument(
+        "--scenes", help=f"comma-separated scene names (default: llff fern; synthetic {','.join(WIDE_SCENES)})"
+    )
     b.add_argument("--out", required=True, help="report path (.json; a .md table is written beside it)")
     b.add_argument("--lpips-weights", help="folder with lpips_alex.pth and lpips_vgg.pth (or CMC_LPIPS_DIR)")
     b.add_argument("--save-dir", help="also keep baked MPIs and test renders here")
     b.add_argument("--ablation", action="store_true", help="run the paper's loss ablation (4 runs)")
     train_opts(b)
+    b.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="override a configuration field, e.g. loss.lambda_ac=0.5 or model.num_planes=32 (repeatable)",
+    )
     b.set_defaults(func=cmd_bench)
 
     d = sub.add_parser("demo", help="reconstruct a synthetic scene from 3 views on the CPU")

@@ -6,7 +6,8 @@ rate decay are fractions of it), so a preset can be run short for tests without 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+import json
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from typing import Any, Literal
 
 from cmc.fields import MLPFieldConfig, PyramidFieldConfig
@@ -95,3 +96,37 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
     else:
         raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
     return replace(cfg, **overrides)
+
+
+def with_settings(cfg: TrainConfig, settings: list[str]) -> TrainConfig:
+    """``cfg`` with dotted ``KEY=VALUE`` overrides applied, e.g. ``loss.lambda_ac=0.5``.
+
+    Values are parsed as JSON (numbers, true/false, lists) where they parse, else kept as text,
+    and must have the type of the field they replace; unknown keys raise ValueError.
+    """
+    for item in settings:
+        key, sep, text = item.partition("=")
+        if not sep:
+            raise ValueError(f"setting {item!r} is not KEY=VALUE")
+        try:
+            value: Any = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        cfg = _replace_path(cfg, key.split("."), value, key)
+    return cfg
+
+
+def _replace_path(obj: Any, path: list[str], value: Any, key: str) -> Any:
+    name = path[0]
+    if not is_dataclass(obj) or name not in {f.name for f in fields(obj)}:
+        raise ValueError(f"unknown setting {key!r}")
+    current = getattr(obj, name)
+    if len(path) > 1:
+        return replace(obj, **{name: _replace_path(current, path[1:], value, key)})
+    if isinstance(current, tuple) and isinstance(value, list):
+        value = tuple(value)
+    elif isinstance(current, float) and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if type(value) is not type(current):
+        raise ValueError(f"setting {key!r} needs a {type(current).__name__}, got {value!r}")
+    return replace(obj, **{name: value})

@@ -13,7 +13,15 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from cmc.cameras import CameraError, CameraFile, Cameras, cameras_from_llff, intrinsics, save_camera_file
+from cmc.cameras import (
+    CameraError,
+    CameraFile,
+    Cameras,
+    cameras_from_llff,
+    intrinsics,
+    look_at,
+    save_camera_file,
+)
 
 CAMERAS_FILE = "cameras.json"
 
@@ -183,14 +191,17 @@ def load_llff(scene_dir: str | Path, images_subdir: str = "images_8", num_train:
 
 @dataclass(frozen=True)
 class Layer:
-    """A textured axis-aligned rectangle at world depth ``z`` (world z is the viewing direction).
+    """A textured rectangle (world z is the viewing direction of the synthetic cameras).
 
-    ``bounds`` = (x0, x1, y0, y1) in world units; ``seed`` picks the procedural texture.
+    The surface is ``z = z0 + tilt[0] * x + tilt[1] * y`` (a fronto-parallel plane when ``tilt``
+    is zero) over ``bounds`` = (x0, x1, y0, y1) in world x, y; ``seed`` picks the procedural
+    texture.
     """
 
     z: float
     bounds: tuple[float, float, float, float]
     seed: int
+    tilt: tuple[float, float] = (0.0, 0.0)
 
 
 DEFAULT_LAYERS = (
@@ -224,7 +235,8 @@ def render_layers(layers: tuple[Layer, ...], cameras: Cameras, supersample: int 
         best_t = np.full(d.shape[:2], np.inf)
         col = np.zeros(d.shape[:2] + (3,))
         for L in layers:
-            t = (L.z - o[2]) / d[..., 2]
+            tx, ty = L.tilt  # o + t d meets z = z0 + tx x + ty y at:
+            t = (L.z + tx * o[0] + ty * o[1] - o[2]) / (d[..., 2] - tx * d[..., 0] - ty * d[..., 1])
             x, y = o[0] + t * d[..., 0], o[1] + t * d[..., 1]
             x0, x1, y0, y1 = L.bounds
             hit = (t > 0) & (t < best_t) & (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
@@ -254,15 +266,7 @@ def synthetic_cameras(
         c = np.array([x, 0.04 * (-1) ** i, 0.0])
         if rng is not None:
             c = c + rng.normal(scale=0.02, size=3)
-        fwd = np.array([0.0, 0.0, 4.0]) - c
-        fwd /= np.linalg.norm(fwd)
-        right = np.cross([0.0, 1.0, 0.0], fwd)
-        right /= np.linalg.norm(right)
-        down = np.cross(fwd, right)
-        pose = np.eye(4)
-        pose[:3, :3] = np.stack([right, down, fwd], axis=1)
-        pose[:3, 3] = c
-        poses.append(pose)
+        poses.append(look_at(c, (0.0, 0.0, 4.0)))
     return Cameras(np.tile(K, (num_views, 1, 1)), np.stack(poses), width, height)
 
 
@@ -279,3 +283,78 @@ def synthetic_scene(
     zs = [L.z for L in layers]
     nf = np.tile([0.8 * min(zs), 1.1 * max(zs)], (num_views, 1))
     return Scene(images, cams, nf, [f"view{i:03d}" for i in range(num_views)], depths)
+
+
+# --- Wide-baseline synthetic set (the view-quality benchmark) ---------------------------------
+
+# Scenes with occlusions and slanted surfaces, seen by three cameras much farther apart than
+# LLFF's (see wide_baseline_split). World units; the cameras sit near z = 0 looking along +z.
+WIDE_SCENES: dict[str, tuple[Layer, ...]] = {
+    # Two overlapping cards in front of a wall: occlusion edges at two depths.
+    "cards": (
+        Layer(1.8, (-0.5, 0.0, -0.35, 0.2), 11),
+        Layer(2.8, (-0.1, 0.7, -0.5, 0.35), 12),
+        Layer(5.5, (-1e3, 1e3, -1e3, 1e3), 13),
+    ),
+    # Thin posts in front of a card and a wall: many narrow disocclusions (a fence, plant stems).
+    "posts": (
+        *(Layer(2.0, (x, x + 0.07, -1.0, 1.0), 21 + k) for k, x in enumerate((-0.75, -0.4, -0.05, 0.3, 0.65))),
+        Layer(3.4, (-0.6, 0.5, -0.3, 0.4), 27),
+        Layer(6.5, (-1e3, 1e3, -1e3, 1e3), 28),
+    ),
+    # Slanted surfaces: a wall receding to the right, a floor, a tilted card in front.
+    "slanted": (
+        Layer(2.3, (-0.3, 0.25, -0.3, 0.15), 31, (0.8, 0.0)),
+        Layer(4.0, (-1e3, 1e3, 0.35, 1e3), 32, (0.0, -2.5)),
+        Layer(4.5, (-1e3, 1e3, -1e3, 1e3), 33, (1.2, 0.0)),
+    ),
+}
+
+
+@dataclass
+class SyntheticSplit:
+    """A synthetic scene's input views and test views with exact images and depth.
+
+    ``test_kinds[k]`` says where test view k is: ``"halfway"`` (midpoint of two input cameras)
+    or ``"near"`` (beside one input camera).
+    """
+
+    name: str
+    train: Scene
+    test: Scene
+    test_kinds: list[str]
+
+
+def wide_baseline_split(
+    name: str, width: int = 252, height: int = 189, baseline: float = 0.6, fov_deg: float = 55.0
+) -> SyntheticSplit:
+    """Scene ``name`` of :data:`WIDE_SCENES` from three input cameras in a triangle.
+
+    The inputs sit at the corners of a triangle ``baseline`` wide (left, right, top), all looking
+    at (0, 0, 4). Test views: the three midpoints of input pairs ("halfway", where a user
+    navigating between the photos is), and each input camera moved by 5 % of the baseline
+    ("near"). Every camera looks at (0, 0, 4); images are rendered exactly with depth.
+    """
+    if name not in WIDE_SCENES:
+        raise SceneError(f"unknown synthetic scene {name!r}; choose one of {', '.join(WIDE_SCENES)}")
+    layers = WIDE_SCENES[name]
+    b = baseline
+    inputs = np.array([[-b / 2, 0.1 * b, 0.0], [b / 2, 0.15 * b, 0.0], [0.05 * b, -0.35 * b, 0.0]])
+    halfway = [(inputs[i] + inputs[j]) / 2 for i, j in ((0, 1), (1, 2), (2, 0))]
+    centroid = inputs.mean(0)
+    near = [c + 0.05 * b * (centroid - c) / np.linalg.norm(centroid - c) for c in inputs]
+    f = 0.5 * width / np.tan(np.radians(fov_deg) / 2)
+    K = intrinsics(f, f, width / 2, height / 2)
+
+    def cams(centers: list[np.ndarray] | np.ndarray) -> Cameras:
+        poses = np.stack([look_at(c, (0.0, 0.0, 4.0)) for c in centers])
+        return Cameras(np.tile(K, (len(poses), 1, 1)), poses, width, height)
+
+    train_cams, test_cams = cams(inputs), cams([*halfway, *near])
+    images, depths = render_layers(layers, train_cams)
+    nf = [0.9 * float(depths.min()), 1.1 * float(depths.max())]  # as SfM bounds would give
+    t_images, t_depths = render_layers(layers, test_cams)
+    train = Scene(images, train_cams, np.tile(nf, (3, 1)), [f"{name}_in{i}" for i in range(3)], depths)
+    test_names = [f"{name}_half{i}{(i + 1) % 3}" for i in range(3)] + [f"{name}_near{i}" for i in range(3)]
+    test = Scene(t_images, test_cams, np.tile(nf, (6, 1)), test_names, t_depths)
+    return SyntheticSplit(name, train, test, ["halfway"] * 3 + ["near"] * 3)

@@ -24,15 +24,9 @@ from cmc.datasets import (
     synthetic_cameras,
     synthetic_scene,
 )
+from cmc.diagnostics import depth_preview
 from cmc.metrics import psnr
 from cmc.training import Progress, Trainer
-
-
-def depth_preview(depth: np.ndarray, near: float, far: float) -> np.ndarray:
-    """[H, W, 3] colour map of inverse depth (near = bright yellow, far = dark blue)."""
-    t = np.clip((1 / np.maximum(depth, 1e-6) - 1 / far) / (1 / near - 1 / far), 0, 1)[..., None]
-    lo, mid, hi = np.array([0.05, 0.03, 0.35]), np.array([0.85, 0.25, 0.3]), np.array([1.0, 0.95, 0.3])
-    return np.where(t < 0.5, lo + (mid - lo) * (2 * t), mid + (hi - mid) * (2 * t - 1))
 
 
 def run_demo(

@@ -114,6 +114,6 @@ def encode_depth_npy(depth: np.ndarray) -> bytes:
 
 
 def encode_depth_preview(depth: np.ndarray, near: float, far: float) -> bytes:
-    from cmc.demo import depth_preview
+    from cmc.diagnostics import depth_preview
 
     return encode_image(depth_preview(depth, near, far) * (depth > 0)[..., None], "image/png")

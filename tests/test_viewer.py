@@ -27,7 +27,7 @@ from cmc.baking import BakedScene, bake
 from cmc.camera_paths import mean_pose
 from cmc.config import preset_config
 from cmc.datasets import synthetic_cameras, synthetic_scene
-from cmc.demo import depth_preview
+from cmc.diagnostics import depth_preview
 from cmc.metrics import psnr
 from cmc.training import Trainer
 
