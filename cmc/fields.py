@@ -93,7 +93,10 @@ class PyramidFieldConfig:
     scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane RGBA residual levels
     base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
     stereo_init: bool = True  # start alpha from plane-sweep photo-consistency (cmc.planesweep)
-    stereo_temperature: float = 0.05  # softmin temperature of that prior (mean abs colour difference)
+    # Softmin temperature of that prior (mean abs colour difference). At 0.05 the prior was nearly
+    # flat (training started from fog); at 0.01 it keeps the sweep's depth (bench/DIAGNOSIS.md).
+    stereo_temperature: float = 0.01
+    stereo_occlusion_aware: bool = True  # that prior takes the best-matching other view, not the mean
 
 
 class PyramidPlaneField(MPIField):

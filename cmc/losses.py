@@ -47,3 +47,25 @@ def appearance_consistency(outs: Sequence[RayOutput]) -> torch.Tensor:
 def depth_consistency(outs: Sequence[RayOutput], depth_scale: float) -> torch.Tensor:
     """Eq. 4.7: mean over MPI pairs i < j and rays of ((Z_i(r) - Z_j(r)) / depth_scale)^2."""
     return _pairwise(outs, lambda a, b: ((a.depth - b.depth) / depth_scale) ** 2)
+
+
+def distortion(outs: Sequence[RayOutput], num_planes: int) -> torch.Tensor:
+    """Concentration prior on each ray's compositing weights (the distortion loss of
+    Mip-NeRF 360, over plane position in normalised disparity s_k = k / (D - 1)).
+
+    Per ray: ``sum_{k,l} w_k w_l |s_k - s_l| + 1/3 sum_k w_k^2 delta`` with plane spacing
+    ``delta = 1 / (D - 1)``. It is small when the weight sits on one plane or a few adjacent ones,
+    and grows when it is spread over distant planes (a ray meeting fog, or two surfaces
+    half-transparent). Mean over MPIs and covered rays; every output needs ``weights``.
+    """
+    delta = 1.0 / (num_planes - 1)
+    terms = []
+    for o in outs:
+        w = o.weights
+        s = torch.arange(w.shape[1], device=w.device, dtype=w.dtype) * delta
+        # sum_{k,l} w_k w_l |s_k - s_l| = 2 sum_k w_k (s_k W_<k - S_<k), exclusive prefix sums.
+        W = torch.cumsum(w, 1) - w
+        S = torch.cumsum(w * s, 1) - w * s
+        per_ray = 2 * (w * (s * W - S)).sum(1) + (w**2).sum(1) * delta / 3
+        terms.append((_mask(o) * per_ray).mean())
+    return torch.stack(terms).mean()

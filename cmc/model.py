@@ -64,7 +64,15 @@ class CMCModel(nn.Module):
                 init_alpha = None
                 if cfg.pyramid.stereo_init:
                     h, w = (max(2, round(e * cfg.pyramid.scales[0])) for e in fr.extent)
-                    probs = plane_sweep_weights(self.frames, images, i, h, w, cfg.pyramid.stereo_temperature)
+                    probs = plane_sweep_weights(
+                        self.frames,
+                        images,
+                        i,
+                        h,
+                        w,
+                        cfg.pyramid.stereo_temperature,
+                        occlusion_aware=cfg.pyramid.stereo_occlusion_aware,
+                    )
                     init_alpha = alpha_from_weights(probs)
                 rgb = padded_reference(scene.images[i], fr)
                 fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha))

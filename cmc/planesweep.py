@@ -36,15 +36,26 @@ def sample_image(image: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, t
 
 @torch.no_grad()
 def plane_sweep_weights(
-    frames: list, images: torch.Tensor, ref: int, height: int, width: int, temperature: float = 0.05, window: int = 5
+    frames: list,
+    images: torch.Tensor,
+    ref: int,
+    height: int,
+    width: int,
+    temperature: float = 0.05,
+    window: int = 5,
+    occlusion_aware: bool = False,
 ) -> torch.Tensor:
     """Per-texel probability that each plane of MPI ``ref`` holds the visible surface.
+
+    The cost of a plane at a texel is the absolute colour difference between the reference
+    photo and another view, box-filtered over ``window`` texels; the views' costs are averaged,
+    or with ``occlusion_aware`` the lowest is taken (a surface hidden from one view by an
+    occluder still matches in another). Texels no other view sees get a flat cost.
 
     Args:
         frames: the MPIFrames of all views; images: [N, 3, H, W] in [0, 1].
         height, width: texel grid over the plane extent.
-        temperature: softmin temperature on the mean absolute colour difference.
-        window: box filter (texels) applied to the cost before the softmin.
+        temperature: softmin temperature on the cost (mean absolute colour difference).
     Returns:
         [D, height, width] probabilities summing to 1 over planes.
     """
@@ -52,26 +63,29 @@ def plane_sweep_weights(
     uv_ref = texel_pixels(fr, height, width)  # [T, 2]
     ref_rgb, _ = sample_image(images[ref], uv_ref)
     D = fr.depths.shape[0]
-    cost = torch.zeros(D, height * width, device=uv_ref.device)
-    count = torch.zeros_like(cost)
+    p = torch.cat([uv_ref, torch.ones_like(uv_ref[:, :1])], -1)
+    costs, seen = [], []
     for j, other in enumerate(frames):
         if j == ref:
             continue
         # Homographies taking view-j pixels to reference pixels for the reference planes; invert.
         H_ref_from_j = homographies_ref_from_tgt(fr.K, fr.ref_from_world, other.K, other.world_from_ref, fr.depths)
-        H_j_from_ref = torch.linalg.inv(H_ref_from_j)  # [D, 3, 3]
-        p = torch.cat([uv_ref, torch.ones_like(uv_ref[:, :1])], -1)
-        q = torch.einsum("dij,tj->dti", H_j_from_ref, p)
+        q = torch.einsum("dij,tj->dti", torch.linalg.inv(H_ref_from_j), p)
         uv_j = q[..., :2] / q[..., 2:3].clamp_min(1e-6)
         rgb_j, inside = sample_image(images[j], uv_j)  # [D, T, 3]
-        inside = inside & (q[..., 2] > 0)
-        cost += inside * (rgb_j - ref_rgb).abs().mean(-1)
-        count += inside
-    mean_cost = cost / count.clamp_min(1)
-    # Texels no other view sees carry no evidence: give them a flat cost.
-    mean_cost = torch.where(count > 0, mean_cost, mean_cost.new_tensor(0.5))
-    c = mean_cost.reshape(D, 1, height, width)
-    c = F.avg_pool2d(c, window, stride=1, padding=window // 2, count_include_pad=False)[:, 0]
+        inside = (inside & (q[..., 2] > 0)).float().reshape(D, 1, height, width)
+        diff = (rgb_j - ref_rgb).abs().mean(-1).reshape(D, 1, height, width) * inside
+        # Box-filtered cost over the texels this view sees (sum of costs / count seen).
+        box = lambda x: F.avg_pool2d(x, window, stride=1, padding=window // 2)  # noqa: E731
+        frac = box(inside)[:, 0]
+        costs.append(box(diff)[:, 0] / frac.clamp_min(1e-6))
+        seen.append(frac > 0)
+    cost, seen_t = torch.stack(costs), torch.stack(seen)  # [V, D, h, w]
+    if occlusion_aware:
+        c = torch.where(seen_t, cost, torch.full_like(cost, float("inf"))).amin(0)
+    else:
+        c = (cost * seen_t).sum(0) / seen_t.sum(0).clamp_min(1)
+    c = torch.where(seen_t.any(0), c, torch.full_like(c, 0.5))
     return torch.softmax(-c / temperature, dim=0)
 
 

@@ -98,12 +98,15 @@ class RayOutput:
 
     Attributes:
         rgb: [R, 3] colour in [0, 1]; depth: [R] target-camera depth (scene units, 0 where
-        nothing is hit); acc: [R] accumulated alpha, 0 outside the MPI's planes.
+        nothing is hit); acc: [R] accumulated alpha, 0 outside the MPI's planes;
+        weights: [R, D] the compositing weights of the planes, nearest first (only from
+        :func:`composite`, for losses on how a ray's opacity is spread).
     """
 
     rgb: torch.Tensor
     depth: torch.Tensor
     acc: torch.Tensor
+    weights: torch.Tensor | None = None
 
 
 def composite(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> RayOutput:
@@ -113,7 +116,7 @@ def composite(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> Ra
     """
     trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], dim=1), dim=1)
     w = alpha * trans
-    return RayOutput((w[..., None] * rgb).sum(1), (w * depth).sum(1), w.sum(1))
+    return RayOutput((w[..., None] * rgb).sum(1), (w * depth).sum(1), w.sum(1), w)
 
 
 def render_rays(

@@ -25,7 +25,7 @@ import torch
 from cmc.config import TrainConfig
 from cmc.datasets import Scene, validate_scene
 from cmc.geometry import sample_virtual_pose
-from cmc.losses import appearance_consistency, depth_consistency, reconstruction_loss
+from cmc.losses import appearance_consistency, depth_consistency, distortion, reconstruction_loss
 from cmc.model import CMCModel
 from cmc.rendering import render_ray_groups
 
@@ -130,6 +130,10 @@ class Trainer:
         unseen = by_target[n:]
         losses["ac"] = torch.stack([appearance_consistency(o) for o in unseen]).mean() if unseen else zero
         losses["dc"] = torch.stack([depth_consistency(o, self.depth_scale) for o in unseen]).mean() if unseen else zero
+        if lc.lambda_distortion > 0:
+            losses["distortion"] = distortion([o for outs in by_target for o in outs], self.model.cfg.num_planes)
+        else:
+            losses["distortion"] = zero
         smooth = [f.smoothness() for f in fields if hasattr(f, "smoothness")] if lc.lambda_smooth > 0 else []
         losses["smooth"] = torch.stack(smooth).mean() if smooth else zero
         losses["total"] = (
@@ -138,6 +142,7 @@ class Trainer:
             + lc.lambda_ac * losses["ac"]
             + lc.lambda_dc * losses["dc"]
             + lc.lambda_smooth * losses["smooth"]
+            + lc.lambda_distortion * losses["distortion"]
         )
         return losses
 

@@ -102,3 +102,26 @@ def test_demo_runs_end_to_end(tmp_path):
     for name in ("novel_view.png", "novel_depth.png", "novel_depth.npy", "orbit.gif", "baked/mpi.json"):
         assert (tmp_path / "demo" / name).exists(), name
     assert summary["novel_view_psnr_db"] > 20
+
+
+def test_bench_synthetic_reports_halfway_and_near_views(tmp_path, capsys):
+    """A short run of the wide-baseline benchmark on one scene: both kinds of view scored, with
+    depth error, and one diagnostic sheet per test view (3 rows of tiles at 252x189)."""
+    from tests.helpers import SHARED_DIR
+
+    weights = SHARED_DIR / "weights"
+    if not (weights / "lpips_alex.pth").exists():
+        pytest.skip("LPIPS weights not in shared/")
+    out = tmp_path / "syn.json"
+    args = ["bench", "synthetic", "--scenes", "cards", "--steps", "2", "--out", str(out)]
+    args += ["--lpips-weights", str(weights), "--save-dir", str(tmp_path / "runs"), "--set", "model.num_planes=8"]
+    assert main(args) == 0
+    report = json.loads(out.read_text())
+    assert report["config"]["model"]["num_planes"] == 8
+    (scene,) = report["scenes"]
+    assert [v["kind"] for v in scene["views"]] == ["halfway"] * 3 + ["near"] * 3
+    for kind in ("halfway", "near"):
+        assert 10 < scene[kind]["psnr"] < 50 and 0 <= scene[kind]["depth_rel_error"] < 1
+    assert "| cards | halfway |" in out.with_suffix(".md").read_text()
+    sheet = load_image(tmp_path / "runs" / "fast" / "cards" / "cards_half01_sheet.png")
+    assert sheet.shape == (3 * 189, 5 * 252, 3)
