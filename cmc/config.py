@@ -36,6 +36,9 @@ class LossConfig:
     lambda_dc: float = 1.0  # depth consistency between MPIs at unseen poses (Eq. 4.7)
     lambda_smooth: float = 0.0  # total variation of the finest alpha level (pyramid fields only)
     lambda_distortion: float = 0.0  # concentration of each ray's opacity (cmc.losses.distortion)
+    # Form of both depth-consistency terms: "squared" (the paper's, on depth / (far - near)) or
+    # "cauchy" (occlusion-tolerant, on disparity; cmc.losses.robust_depth_consistency).
+    depth_consistency: Literal["squared", "cauchy"] = "squared"
     recon_only_fraction: float = 0.3  # first fraction of steps uses L_MSE only (paper: 15/50 epochs)
     ac_geometry_only: bool = False  # L_ac moves alpha only, not colours (see bench/RESULTS.md)
 

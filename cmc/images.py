@@ -30,6 +30,7 @@ class UnsupportedImageError(SceneError):
 class ImageTooLargeError(SceneError):
     """The image has more pixels than allowed (decompression-bomb guard)."""
 
+
 try:  # HEIC/HEIF (iPhone default) if the optional decoder is installed
     from pillow_heif import register_heif_opener
 

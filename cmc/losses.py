@@ -49,6 +49,25 @@ def depth_consistency(outs: Sequence[RayOutput], depth_scale: float) -> torch.Te
     return _pairwise(outs, lambda a, b: ((a.depth - b.depth) / depth_scale) ** 2)
 
 
+def robust_depth_consistency(outs: Sequence[RayOutput], near: float, far: float, scale: float) -> torch.Tensor:
+    """Eq. 4.7 in an occlusion-tolerant form: mean over MPI pairs and rays of
+    ``log(1 + ((s_i - s_j) / scale)^2)`` on normalised disparity
+    ``s = (1/z - 1/far) / (1/near - 1/far)`` (0 at far, 1 at near; the planes are uniform in s).
+
+    Two MPIs may rightly disagree about a ray's depth where one of them sees an occluder and the
+    other the surface behind it; the squared loss then pulls both towards an average depth (a
+    halo of wrong depth at every occlusion edge). The Cauchy penalty corrects disagreements of a
+    few ``scale`` (use one plane spacing, 1 / (D - 1)) and lets large ones go: its gradient falls
+    off as 1 / difference.
+    """
+    inv_near, inv_far = 1.0 / near, 1.0 / far
+
+    def s(o: RayOutput) -> torch.Tensor:
+        return (1.0 / o.depth.clamp_min(0.5 * near) - inv_far) / (inv_near - inv_far)
+
+    return _pairwise(outs, lambda a, b: torch.log1p(((s(a) - s(b)) / scale) ** 2))
+
+
 def distortion(outs: Sequence[RayOutput], num_planes: int) -> torch.Tensor:
     """Concentration prior on each ray's compositing weights (the distortion loss of
     Mip-NeRF 360, over plane position in normalised disparity s_k = k / (D - 1)).

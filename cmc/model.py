@@ -72,6 +72,7 @@ class CMCModel(nn.Module):
                         w,
                         cfg.pyramid.stereo_temperature,
                         occlusion_aware=cfg.pyramid.stereo_occlusion_aware,
+                        edge_sigma=cfg.pyramid.stereo_edge_sigma or None,
                     )
                     init_alpha = alpha_from_weights(probs)
                 rgb = padded_reference(scene.images[i], fr)

@@ -44,13 +44,17 @@ def plane_sweep_weights(
     temperature: float = 0.05,
     window: int = 5,
     occlusion_aware: bool = False,
+    edge_sigma: float | None = None,
 ) -> torch.Tensor:
     """Per-texel probability that each plane of MPI ``ref`` holds the visible surface.
 
     The cost of a plane at a texel is the absolute colour difference between the reference
-    photo and another view, box-filtered over ``window`` texels; the views' costs are averaged,
-    or with ``occlusion_aware`` the lowest is taken (a surface hidden from one view by an
-    occluder still matches in another). Texels no other view sees get a flat cost.
+    photo and another view, averaged over a ``window`` x ``window`` neighbourhood: uniformly, or
+    with ``edge_sigma`` weighted by ``exp(-|I(x) - I(y)| / edge_sigma)`` (mean absolute colour
+    difference of the reference photo between the texel and its neighbour), so that the costs of
+    a background do not leak across an object's outline (foreground fattening). The views' costs
+    are averaged, or with ``occlusion_aware`` the lowest is taken (a surface hidden from one
+    view by an occluder still matches in another). Texels no other view sees get a flat cost.
 
     Args:
         frames: the MPIFrames of all views; images: [N, 3, H, W] in [0, 1].
@@ -64,6 +68,7 @@ def plane_sweep_weights(
     ref_rgb, _ = sample_image(images[ref], uv_ref)
     D = fr.depths.shape[0]
     p = torch.cat([uv_ref, torch.ones_like(uv_ref[:, :1])], -1)
+    aggregate = _window_mean(ref_rgb.T.reshape(3, height, width), window, edge_sigma)
     costs, seen = [], []
     for j, other in enumerate(frames):
         if j == ref:
@@ -75,10 +80,9 @@ def plane_sweep_weights(
         rgb_j, inside = sample_image(images[j], uv_j)  # [D, T, 3]
         inside = (inside & (q[..., 2] > 0)).float().reshape(D, 1, height, width)
         diff = (rgb_j - ref_rgb).abs().mean(-1).reshape(D, 1, height, width) * inside
-        # Box-filtered cost over the texels this view sees (sum of costs / count seen).
-        box = lambda x: F.avg_pool2d(x, window, stride=1, padding=window // 2)  # noqa: E731
-        frac = box(inside)[:, 0]
-        costs.append(box(diff)[:, 0] / frac.clamp_min(1e-6))
+        # Window-averaged cost over the texels this view sees (sum of costs / weight seen).
+        frac = aggregate(inside[:, 0])
+        costs.append(aggregate(diff[:, 0]) / frac.clamp_min(1e-6))
         seen.append(frac > 0)
     cost, seen_t = torch.stack(costs), torch.stack(seen)  # [V, D, h, w]
     if occlusion_aware:
@@ -87,6 +91,31 @@ def plane_sweep_weights(
         c = (cost * seen_t).sum(0) / seen_t.sum(0).clamp_min(1)
     c = torch.where(seen_t.any(0), c, torch.full_like(c, 0.5))
     return torch.softmax(-c / temperature, dim=0)
+
+
+def _window_mean(guide: torch.Tensor, window: int, edge_sigma: float | None):
+    """A function [C, h, w] -> [C, h, w]: the weighted sum over each texel's window, weights
+    normalised to sum to 1 over the window (zero outside the grid). Uniform weights without
+    ``edge_sigma``; else ``exp(-mean_c |guide(x) - guide(y)| / edge_sigma)`` for guide [3, h, w]."""
+    r = window // 2
+    h, w = guide.shape[-2:]
+    if edge_sigma is None:
+        return lambda x: F.avg_pool2d(x[:, None], window, stride=1, padding=r)[:, 0]
+    padded = F.pad(guide, (r, r, r, r))
+    inside = F.pad(torch.ones(1, h, w, device=guide.device), (r, r, r, r))
+    offsets = [(dy, dx) for dy in range(window) for dx in range(window)]
+    weights = []
+    for dy, dx in offsets:
+        diff = (padded[:, dy : dy + h, dx : dx + w] - guide).abs().mean(0)
+        weights.append(torch.exp(-diff / edge_sigma) * inside[0, dy : dy + h, dx : dx + w])
+    total = sum(weights)
+    weights = [wt / total for wt in weights]
+
+    def apply(x: torch.Tensor) -> torch.Tensor:
+        xp = F.pad(x, (r, r, r, r))
+        return sum(wt * xp[:, dy : dy + h, dx : dx + w] for wt, (dy, dx) in zip(weights, offsets, strict=True))
+
+    return apply
 
 
 def alpha_from_weights(weights: torch.Tensor, lo: float = 0.01, hi: float = 0.99) -> torch.Tensor:

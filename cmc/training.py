@@ -25,7 +25,13 @@ import torch
 from cmc.config import TrainConfig
 from cmc.datasets import Scene, validate_scene
 from cmc.geometry import sample_virtual_pose
-from cmc.losses import appearance_consistency, depth_consistency, distortion, reconstruction_loss
+from cmc.losses import (
+    appearance_consistency,
+    depth_consistency,
+    distortion,
+    reconstruction_loss,
+    robust_depth_consistency,
+)
 from cmc.model import CMCModel
 from cmc.rendering import render_ray_groups
 
@@ -121,15 +127,18 @@ class Trainer:
         n = len(self.scene)
         zero = torch.zeros((), device=self.device)
         losses = {"mse": torch.stack([reconstruction_loss(by_target[j], targets[j]) for j in range(n)]).mean()}
+        if lc.depth_consistency == "cauchy":
+            scale = 1.0 / (self.model.cfg.num_planes - 1)
+            dc_loss = lambda o: robust_depth_consistency(o, self.scene.near, self.scene.far, scale)  # noqa: E731
+        else:
+            dc_loss = lambda o: depth_consistency(o, self.depth_scale)  # noqa: E731
         if full and lc.lambda_dc_input > 0:
-            losses["dc_input"] = torch.stack(
-                [depth_consistency(by_target[j], self.depth_scale) for j in range(n)]
-            ).mean()
+            losses["dc_input"] = torch.stack([dc_loss(by_target[j]) for j in range(n)]).mean()
         else:
             losses["dc_input"] = zero
         unseen = by_target[n:]
         losses["ac"] = torch.stack([appearance_consistency(o) for o in unseen]).mean() if unseen else zero
-        losses["dc"] = torch.stack([depth_consistency(o, self.depth_scale) for o in unseen]).mean() if unseen else zero
+        losses["dc"] = torch.stack([dc_loss(o) for o in unseen]).mean() if unseen else zero
         if lc.lambda_distortion > 0:
             losses["distortion"] = distortion([o for outs in by_target for o in outs], self.model.cfg.num_planes)
         else:

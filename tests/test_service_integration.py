@@ -106,9 +106,24 @@ class Deployment:
         return self.start(
             name,
             [
-                sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker", "-Q", self.env[queue],
-                "--concurrency", "1", "--prefetch-multiplier", "1", "-n", f"{name}@%h",
-                "--without-gossip", "--without-mingle", "--loglevel", "INFO",
+                sys.executable,
+                "-m",
+                "celery",
+                "-A",
+                "worker.celery_app",
+                "worker",
+                "-Q",
+                self.env[queue],
+                "--concurrency",
+                "1",
+                "--prefetch-multiplier",
+                "1",
+                "-n",
+                f"{name}@%h",
+                "--without-gossip",
+                "--without-mingle",
+                "--loglevel",
+                "INFO",
             ],
         )
 

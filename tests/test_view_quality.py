@@ -125,3 +125,31 @@ def test_wide_baseline_split_cameras():
         np.testing.assert_allclose(uv[:, 0], np.tile([32.0, 24.0], (len(cams), 1)), atol=1e-9)
     assert split.test_kinds == ["halfway"] * 3 + ["near"] * 3
     assert split.train.near < split.train.depths.min() and split.train.far > split.train.depths.max()
+
+
+def test_robust_depth_consistency_corrects_small_and_tolerates_large_disagreements():
+    """On normalised disparity, log(1 + (ds / scale)^2): zero for agreeing MPIs, log 2 at one
+    scale apart; its pull (gradient) on a depth peaks near one scale and falls for a disagreement
+    as large as an occluder in front of a wall, where the squared loss pulls hardest."""
+    from cmc.losses import depth_consistency, robust_depth_consistency
+
+    near, far, scale = 1.0, 10.0, 0.05
+
+    def depth_at(s: float) -> float:  # normalised disparity -> depth
+        return 1.0 / (s * (1 / near - 1 / far) + 1 / far)
+
+    def pull(loss, s_b: float) -> float:
+        a = torch.tensor([depth_at(0.5)], requires_grad=True)
+        b = torch.tensor([depth_at(s_b)])
+        out = lambda z: RayOutput(torch.zeros(1, 3), z, torch.ones(1))  # noqa: E731
+        value = loss([out(a), out(b)])
+        value.backward()
+        return abs(a.grad.item()), value.item()
+
+    robust = lambda o: robust_depth_consistency(o, near, far, scale)  # noqa: E731
+    squared = lambda o: depth_consistency(o, far - near)  # noqa: E731
+    assert pull(robust, 0.5)[1] == pytest.approx(0.0, abs=1e-6)
+    assert pull(robust, 0.5 + scale)[1] == pytest.approx(np.log(2), rel=1e-3)
+    small, large = pull(robust, 0.5 + scale)[0], pull(robust, 0.5 + 8 * scale)[0]
+    assert large < 0.5 * small, (small, large)
+    assert pull(squared, 0.5 + 8 * scale)[0] > pull(squared, 0.5 + scale)[0]
