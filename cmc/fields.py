@@ -97,7 +97,7 @@ class PyramidFieldConfig:
     # flat (training started from fog); at 0.01 it keeps the sweep's depth (bench/DIAGNOSIS.md).
     stereo_temperature: float = 0.01
     stereo_occlusion_aware: bool = True  # that prior takes the best-matching other view, not the mean
-    stereo_edge_sigma: float = 0.0  # > 0: edge-aware cost aggregation (cmc.planesweep), colour scale
+    stereo_edge_sigma: float = 0.1  # > 0: edge-aware cost aggregation (cmc.planesweep), colour scale
 
 
 class PyramidPlaneField(MPIField):
