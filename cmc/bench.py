@@ -190,13 +190,15 @@ def run_llff_bench(
     keys = (*METRICS, "train_seconds", "render_ms_median")
     return {
         "protocol": "LLFF images_8, test = index % 8 == 0, 3 train views evenly from the rest (RegNeRF)",
-        **_report_header(cfg, device),
+        **report_header(cfg, device),
         "scenes": records,
         "mean": {k: float(np.mean([r[k] for r in records])) for k in keys},
     }
 
 
-def _report_header(cfg: TrainConfig, device: torch.device) -> dict[str, Any]:
+def report_header(cfg: TrainConfig, device: torch.device) -> dict[str, Any]:
+    """What every benchmark report starts with: preset, full configuration, device, commit, date,
+    peak memory."""
     return {
         "preset": cfg.preset,
         "config": cfg.to_dict(),
@@ -249,7 +251,7 @@ def run_synthetic_bench(
     return {
         "protocol": "wide-baseline synthetic scenes (cmc.datasets.wide_baseline_split), 252x189, 3 input views; "
         "test views halfway between two inputs and near each input",
-        **_report_header(cfg, device),
+        **report_header(cfg, device),
         "scenes": records,
         "mean": mean,
     }

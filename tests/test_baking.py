@@ -39,11 +39,12 @@ def test_baked_render_matches_field_render_at_input_views(trained, tmp_path):
         assert psnr(a.rgb.numpy(), b.rgb.numpy()) >= 35
         # The field interpolates alpha logits then applies the sigmoid; the baked texture holds
         # sigmoid values and the renderer interpolates those (in 8 bits). With the sharp plane-sweep
-        # start (logits +-4.6 one texel apart) the two differ along occlusion edges, where 10 planes
-        # make a partial one-plane shift several % of depth: the bulk must agree, the edge tail less.
+        # start (logits +-4.6 one texel apart) the two differ along occlusion edges by part of a
+        # plane step: the bulk must agree, the edge tail within one plane step (here 10 planes
+        # from 1.6 to 6.6: one step is 10.5 % of depth at z = 2, the nearest layer, more behind).
         rel = (a.depth - b.depth).abs() / a.depth
         assert rel.median().item() < 0.005 and rel.quantile(0.95).item() < 0.02, rel.quantile(0.95)
-        assert rel.quantile(0.99).item() < 0.06, rel.quantile(0.99)
+        assert rel.quantile(0.99).item() < 0.1, rel.quantile(0.99)
 
 
 def test_baked_render_matches_slow_twin(trained, tmp_path):

@@ -72,11 +72,15 @@ def test_path_video_decodes_to_the_rendered_frames(baked_dir, tmp_path, kind):
     assert np.abs(f - f[0]).mean(axis=(1, 2, 3)).max() > 5
     # ... and each is the baked render at its pose, up to H.264 (compared in luma: 4:2:0 chroma
     # subsampling blurs this tiny, saturated synthetic texture), closer than to any other pose.
+    # Frames 0 and 1 are well apart from their neighbours on every path (the dolly's turning
+    # point, frames 2-4, barely moves, and H.264 interpolates such frames); the dolly passes each
+    # pose twice, so the best match must be the frame's pose, not necessarily its index.
     K, poses, w, h = path_cameras(baked, kind, 12)
     refs = [baked.render(K, pose, w, h).rgb.numpy() for pose in poses]
-    for i in (0, 3):
+    for i in (0, 1):
         scores = [psnr(frames[i] / 255.0 @ LUMA, ref @ LUMA) for ref in refs]
-        assert scores[i] >= 33 and int(np.argmax(scores)) == i, scores
+        best = int(np.argmax(scores))
+        assert scores[i] >= 33 and np.allclose(poses[best], poses[i], atol=1e-9), scores
 
 
 def test_odd_sizes_are_cropped_to_even(baked_dir, tmp_path):
