@@ -48,6 +48,11 @@ FERN_CMD = (
     "CMC_LPIPS_DIR=../shared/weights cmc bench llff --data ../shared/datasets/llff --scenes fern "
     "--out bench/{} --save-dir /tmp/runs"
 )
+FERN_STEPS = [
+    ("sweepnorm", "`fast` before, plane sweep with the new window normalisation"),
+    ("comboA", "prior 0.01 + sharper occlusion-aware start"),
+    ("nodc", "... without L_dc^I and L_dc"),
+]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
     ("view_quality_synthetic_before.json", "`fast` before"),
@@ -61,22 +66,33 @@ VQ_ABLATION = [
     ("view_quality_synthetic_comboA_nodc.json", "... without L_dc^I and L_dc"),
     ("view_quality_synthetic_cauchy01.json", "... with L_dc^I, L_dc in Cauchy form (0.01)"),
     ("view_quality_synthetic_cauchy1.json", "... with L_dc^I, L_dc in Cauchy form (0.1)"),
-    ("view_quality_synthetic_edge.json", "... Cauchy (0.01) + edge-aware sweep"),
     ("view_quality_synthetic_after_ac.json", "`fast` now + L_ac"),
     ("view_quality_synthetic_after.json", "**`fast` now**"),
 ]
 
 
+# Settings added during the view-quality work: a report written before a setting existed ran
+# with the behaviour of this value.
+ABSENT_MEANS = {
+    "model.pyramid.stereo_occlusion_aware": False,
+    "model.pyramid.stereo_edge_sigma": 0.0,
+    "loss.lambda_distortion": 0.0,
+    "loss.depth_consistency": "squared",
+}
+
+
 def config_flags(config: dict, reference: dict, prefix: str = "") -> list[str]:
     """``--set`` flags that turn the reference configuration into ``config``."""
     flags = []
-    for key, value in config.items():
+    for key in [*reference, *(k for k in config if k not in reference)]:
+        name = f"{prefix}{key}"
+        value = config[key] if key in config else ABSENT_MEANS.get(name)
         ref = reference.get(key)
-        if isinstance(value, dict):
-            flags += config_flags(value, ref or {}, f"{prefix}{key}.")
-        elif value != ref and key not in ("preset",):
-            text = json.dumps(value).replace(" ", "") if not isinstance(value, str) else value
-            flags.append(f"--set {prefix}{key}={text}")
+        if isinstance(ref, dict) or isinstance(value, dict):
+            flags += config_flags(value or {}, ref or {}, f"{name}.")
+        elif value != ref and key != "preset":
+            text = value if isinstance(value, str) else json.dumps(value).replace(" ", "")
+            flags.append(f"--set {name}={text}")
     return flags
 
 
@@ -134,6 +150,21 @@ def view_quality_section() -> list[str]:
             )
             + ".\n",
         ]
+    steps = [(load(f"view_quality_fern_{n}.json"), label) for n, label in FERN_STEPS]
+    if fb and fa and all(r for r, _ in steps):
+        out += [
+            "Fern along the way (same command, settings against `fast` now):\n",
+            "| run | PSNR | SSIM | LPIPS-alex | LPIPS-vgg | train s | commit | settings |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for r, label in [(fb, "`fast` before"), *steps, (fa, "**`fast` now**")]:
+            s = r["scenes"][0]
+            flags = " ".join(f"`{f}`" for f in config_flags(r["config"], fa["config"])) or "(none)"
+            out.append(
+                f"| {label} | {s['psnr']:.2f} | {s['ssim']:.3f} | {s['lpips_alex']:.3f} | {s['lpips_vgg']:.3f} "
+                f"| {s['train_seconds']:.0f} | {r['git_commit']} | {flags} |"
+            )
+        out.append("")
     sb, sa = load("view_quality_synthetic_before.json"), load("view_quality_synthetic_after.json")
     if sb and sa:
         head = [
@@ -176,15 +207,37 @@ def view_quality_section() -> list[str]:
             "Ablation on the synthetic set (means over the three scenes). Each row is `"
             + SYN_CMD.format("view_quality_synthetic_NAME.json")
             + "` run at the commit shown with the settings shown: the difference between that run's recorded "
-            "configuration and `fast` now, as `--set` flags (so each row can be rerun on today's code). "
-            "'+dirty' means tracked files were edited while the run was going; each run's code was the "
-            "committed preset plus the options named (its JSON holds the full configuration). Rows other "
-            "than the first and the last ran while other work shared the CPU at times: their train "
-            "seconds are not comparable, the quality columns are.\n",
+            "configuration and `fast` now, as `--set` flags (so each row can be rerun on today's code; "
+            "each JSON holds the full configuration). '+dirty': the working tree held uncommitted changes "
+            "when the report was written; the options these runs use were committed unchanged in 151a96b "
+            "(concentration prior, occlusion-aware sweep) and e80d556 (Cauchy form, edge-aware sweep). "
+            "The first two rows ran with the plane sweep's earlier window normalisation at the borders "
+            "of the views' overlap (151a96b normalises per view; on fern that alone moved the `fast` "
+            "preset from 21.47 to 21.58 dB, table above). Rows other than the first and the last ran "
+            "while other work shared the CPU at times: their train seconds are not comparable, the "
+            "quality columns are.\n",
             "| run | halfway PSNR | halfway LPIPS-vgg | halfway depth err | near PSNR | near LPIPS-vgg "
             "| near depth err | train s | commit | settings against `fast` now |",
             "|---|---|---|---|---|---|---|---|---|---|",
             *rows,
+            "",
+        ]
+    vb = load("visibility_blend.json")
+    if vb:
+        cols = list(vb["psnr"]["halfway"])
+        out += [
+            "Visibility-aware blending, tried and not adopted (`bench/visibility_blend.py`: the baked "
+            "`fast` scenes of the synthetic run above, blended with each MPI's weight also multiplied by "
+            "(share of its composite its own camera saw)^gamma; gamma 0 = the blend in use). Mean PSNR:\n",
+            "Command: `PYTHONPATH=. python bench/visibility_blend.py --runs /tmp/runs/fast "
+            "--out bench/visibility_blend.json`; "
+            f"date {vb['date']}, commit {vb['git_commit']}.\n",
+            "| views | " + " | ".join(f"gamma {g}" for g in cols) + " |",
+            "|---|" + "---|" * len(cols),
+            *(
+                f"| {kind} | " + " | ".join(f"{vb['psnr'][kind][g]:.2f}" for g in cols) + " |"
+                for kind in ("halfway", "near")
+            ),
             "",
         ]
     return out
@@ -198,7 +251,7 @@ def main() -> None:
     if fast:
         m, s = fast["mean"], fast["scenes"][0]
         out += [
-            "## LLFF fern, `fast` preset, CPU (issue 2)\n",
+            "## LLFF fern, the `fast` preset of issue 2 (before the view-quality work above), CPU\n",
             "Protocol: images_8 (504x378), test views 0, 8, 16 (index % 8 == 0), training views 1, 10, 19 "
             "(RegNeRF split). Metrics on the baked renderer's output; render time is the median over "
             "5 renders of each test view.\n",
@@ -278,7 +331,8 @@ def main() -> None:
         out += [
             "## README demo (synthetic layered scene, 3 views at 240x180, CPU)\n",
             "Command: `cmc demo --out /tmp/demo_full` (its summary.json copied to bench/demo_cpu.json).  \n"
-            "Machine: the same 2-core CPU box, no GPU. Date: 2026-11-22.\n",
+            "Machine: the same 2-core CPU box, no GPU. "
+            "Date: 2026-11-23 (the `fast` preset after the view-quality work).\n",
             f"- training: {demo['steps']} steps in {demo['train_seconds']:.0f} s",
             f"- novel view (between input cameras) vs exact ground truth: {demo['novel_view_psnr_db']:.2f} dB PSNR",
             f"- median relative depth error of that view: {demo['novel_depth_median_abs_rel_error']:.3f}\n",
