@@ -94,9 +94,11 @@ def plane_sweep_weights(
 
 
 def _window_mean(guide: torch.Tensor, window: int, edge_sigma: float | None):
-    """A function [C, h, w] -> [C, h, w]: the weighted sum over each texel's window, weights
-    normalised to sum to 1 over the window (zero outside the grid). Uniform weights without
-    ``edge_sigma``; else ``exp(-mean_c |guide(x) - guide(y)| / edge_sigma)`` for guide [3, h, w]."""
+    """A function [C, h, w] -> [C, h, w]: a weighted sum over each texel's window, texels outside
+    the grid counting as zero. Uniform weights 1 / window^2 without ``edge_sigma``; else
+    ``exp(-mean_c |guide(x) - guide(y)| / edge_sigma)`` (guide [3, h, w]), normalised over the
+    window's texels inside the grid. Callers divide two such sums (costs by coverage), so only
+    the relative weights matter."""
     r = window // 2
     h, w = guide.shape[-2:]
     if edge_sigma is None:
