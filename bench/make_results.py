@@ -52,6 +52,7 @@ FERN_STEPS = [
     ("sweepnorm", "`fast` before, plane sweep with the new window normalisation"),
     ("comboA", "prior 0.01 + sharper occlusion-aware start"),
     ("nodc", "... without L_dc^I and L_dc"),
+    ("steps800", "`fast` now with 800 steps (not adopted: LPIPS a little better, PSNR/SSIM a little worse, 2x time)"),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
