@@ -26,6 +26,7 @@ from cmc.config import TrainConfig
 from cmc.datasets import Scene, load_llff, save_image, wide_baseline_split
 from cmc.diagnostics import contact_sheet, depth_error_map, depth_preview, error_map
 from cmc.metrics import image_metrics, psnr
+from cmc.rendering import ImageOutput
 from cmc.training import Progress, Trainer
 
 METRICS = ("psnr", "ssim", "lpips_alex", "lpips_vgg")
@@ -139,21 +140,28 @@ def score_views(
         per_view.append(rec)
         if save_dir:
             save_image(save_dir / f"{name}.png", pred)
-            save_image(save_dir / f"{name}_sheet.png", diagnostic_sheet(baked, K, pose, test.images[k], gt_depth))
+            sheet = diagnostic_sheet(baked, K, pose, test.images[k], gt_depth, blended=out)
+            save_image(save_dir / f"{name}_sheet.png", sheet)
     return per_view, times
 
 
 def diagnostic_sheet(
-    baked: BakedScene, K: np.ndarray, pose: np.ndarray, gt: np.ndarray, gt_depth: np.ndarray | None = None
+    baked: BakedScene,
+    K: np.ndarray,
+    pose: np.ndarray,
+    gt: np.ndarray,
+    gt_depth: np.ndarray | None = None,
+    blended: ImageOutput | None = None,
 ) -> np.ndarray:
     """One picture of a test view: where its error lives and which MPI it comes from.
 
-    Row 1: ground truth, the blended render, its colour error (white = 0.25 mean abs error),
-    and its depth error where ``gt_depth`` is given (white = 25 % relative). Row 2: each MPI's
-    own render with its PSNR. Row 3: each MPI's depth, the blended depth, the true depth.
+    Row 1: ground truth, the blended render (``blended`` when the caller already has it), its
+    colour error (white = 0.25 mean abs error), and its depth error where ``gt_depth`` is given
+    (white = 25 % relative). Row 2: each MPI's own render with its PSNR. Row 3: each MPI's
+    depth, the blended depth, the true depth.
     """
     near, far = baked.near, baked.far
-    blended = baked.render(K, pose)
+    blended = blended or baked.render(K, pose)
     rgb, depth = blended.rgb.cpu().numpy(), blended.depth.cpu().numpy()
     row1 = [("truth", gt), (f"blend {psnr(rgb, gt):.2f} dB", rgb), ("|error|", error_map(rgb, gt))]
     if gt_depth is not None:
