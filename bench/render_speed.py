@@ -1,9 +1,10 @@
 """CPU latency of the baked renderer (``BakedScene.render``) on a real-size fern bake.
 
-Builds a baked scene faithful to a 48-plane fern bake without a long training run: the ``fast``
-preset on LLFF fern's three training views (1, 10, 19), a few training steps on top of the
-plane-sweep alpha initialisation, baked with all planes (``cmc.baking.bake``, merge 1; the
-renderer's cost does not depend on the alpha values). Then times ``BakedScene.render`` at the
+Builds a 48-plane fern bake: the ``fast`` preset on LLFF fern's three training views (1, 10, 19),
+``--steps`` training steps (default 400, the preset's), baked with all planes (``cmc.baking.bake``,
+merge 1). The CPU renderer's cost depends on the alphas (it skips empty texel tiles and stops
+rays once opaque), so time a fully trained bake: this one, or ``--baked`` of a
+``cmc bench llff --save-dir DIR`` run (``DIR/fast/fern/baked``). Then times ``BakedScene.render`` at the
 native 504x378 size for the three held-out test poses (views 0, 8, 16) and the three input
 poses: one warm-up render per pose, then ``--repeats`` timed renders each, reporting the median
 and p90 per view and over all renders.
@@ -21,6 +22,11 @@ times that version of :mod:`cmc.rendering` (its ``render_image`` over the same l
 alternating with the current one render by render, so that both see the same machine state (a
 shared CPU drifts by tens of percent within minutes); the report then has a ``before`` block and
 the agreement of the two renders (colour PSNR, depth max relative error over covered pixels).
+
+Memory: the bytes a loaded scene keeps (``BakedScene.nbytes``, the 8-bit textures) and those of
+the float32 ``TextureField`` copies the torch renderer samples (built for ``--before`` only); the
+process's resident memory after loading one scene, the increase per four more loaded copies,
+and after building the float copies.
 """
 
 from __future__ import annotations
@@ -81,6 +87,11 @@ def load_rendering(path: Path) -> ModuleType:
     return module
 
 
+def rss_mb() -> float:
+    """This process's resident memory now, MiB (Linux /proc)."""
+    return int(Path("/proc/self/statm").read_text().split()[1]) * 4096 / 2**20
+
+
 def summary(ms: list[float]) -> dict:
     return {"median_ms": statistics.median(ms), "p90_ms": float(np.percentile(np.asarray(ms), 90))}
 
@@ -88,7 +99,7 @@ def summary(ms: list[float]) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared/datasets/llff/fern")
-    ap.add_argument("--steps", type=int, default=3, help="training steps before baking")
+    ap.add_argument("--steps", type=int, default=400, help="training steps before baking")
     ap.add_argument("--repeats", type=int, default=7, help="timed renders per pose (after one warm-up)")
     ap.add_argument("--baked", type=Path, default=None, help="reuse / keep the bake in this folder")
     ap.add_argument("--before", type=Path, default=None, help="an older cmc/rendering.py to time alternately")
@@ -100,7 +111,13 @@ def main() -> None:
         build = {"reused_bake": True}
         if not (baked_dir / MANIFEST).exists():
             build = {"reused_bake": False, **build_bake(args.data, args.steps, baked_dir)}
+        rss_before_load = rss_mb()
         baked = BakedScene.load(baked_dir)
+        memory = {"rss_before_load_mb": rss_before_load, "rss_loaded_mb": rss_mb(), "scene_mb": baked.nbytes / 2**20}
+        # Resident memory per further loaded scene (what a render cache pays per scene).
+        extra = [BakedScene.load(baked_dir) for _ in range(4)]
+        memory["rss_per_more_scene_mb"] = (rss_mb() - memory["rss_loaded_mb"]) / len(extra)
+        del extra
     split = load_llff(args.data)
     poses = [("test", split.test_ids[k], split.test.cameras, k) for k in range(len(split.test))]
     poses += [("input", split.train_ids[k], split.train.cameras, k) for k in range(len(split.train))]
@@ -109,6 +126,9 @@ def main() -> None:
     if args.before:
         old = load_rendering(args.before)
         renderers["before"] = lambda K, pose, w, h: old.render_image(baked.fields, baked.frames, K, pose, w, h)
+        fields = baked.fields
+        memory["float_fields_mb"] = sum(b.nbytes for f in fields for b in f.buffers()) / 2**20
+        memory["rss_with_float_fields_mb"] = rss_mb()
     views: dict[str, list[dict]] = {name: [] for name in renderers}
     all_ms: dict[str, list[float]] = {name: [] for name in renderers}
     agreement = []
@@ -158,10 +178,11 @@ def main() -> None:
             "render_size": [baked.width, baked.height],
             "mpis": len(baked.frames),
             "planes_per_mpi": len(frame.depths),
-            "tile": list(baked.fields[0].rgba.shape[2:]),
+            "tile": list(baked.textures[0].shape[1:3]),
             "margin": frame.margin,
             **build,
         },
+        "memory": memory,
         "repeats_per_view": args.repeats,
         "warmup_per_view": 1,
         "overall": summary(all_ms["after"]),

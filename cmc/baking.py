@@ -23,16 +23,17 @@ On-disk format ``cmc-mpi`` version 1 (a folder; every file is browser-loadable):
   ``((c + 0.5) / w * 2 - 1) * m`` -> ``u = (x * m + 1) / 2 * W`` (same for v with h, H), i.e.
   the tile spans the image's extent enlarged ``m`` times about the image centre.
 
-Rendering composites each MPI front to back and blends them exactly as
-:func:`cmc.rendering.render_image` does (the baked renderer *is* that function, over
-:class:`cmc.fields.TextureField` fields).
+Rendering composites each MPI front to back and blends them as
+:func:`cmc.rendering.render_image` does: on the CPU with the compiled kernel of
+:mod:`cmc.texture_kernel` straight from the 8-bit textures, elsewhere with that function over
+:class:`cmc.fields.TextureField` fields.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -40,9 +41,9 @@ import torch
 from PIL import Image
 
 from cmc.fields import MPIField, TextureField
-from cmc.geometry import mean_baseline
+from cmc.geometry import blend_weights, mean_baseline
 from cmc.model import CMCModel
-from cmc.rendering import ImageOutput, MPIFrame, render_image
+from cmc.rendering import ImageOutput, MPIFrame, RayOutput, blend, render_image
 
 FORMAT = "cmc-mpi"
 VERSION = 1
@@ -115,9 +116,9 @@ def bake(model: CMCModel, out_dir: str | Path, scale: float = 1.0, merge: int = 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     mpis = []
-    for i, (field, frame) in enumerate(zip(model.fields, model.frames, strict=True)):
+    for i, (mpi_field, frame) in enumerate(zip(model.fields, model.frames, strict=True)):
         h, w = (max(2, round(s * scale)) for s in frame.extent)
-        rgba, depths = merge_planes(bake_textures(field, frame, (h, w)), frame.depths, merge)  # type: ignore[arg-type]
+        rgba, depths = merge_planes(bake_textures(mpi_field, frame, (h, w)), frame.depths, merge)  # type: ignore[arg-type]
         D = rgba.shape[0]
         rows, cols = _atlas_grid(D)
         atlas = np.zeros((rows * h, cols * w, 4), dtype=np.uint8)
@@ -162,17 +163,31 @@ def bake(model: CMCModel, out_dir: str | Path, scale: float = 1.0, merge: int = 
 
 @dataclass
 class BakedScene:
-    """A loaded baked folder: textures as :class:`TextureField` plus their frames."""
+    """A loaded baked folder: the 8-bit textures of each MPI plus their frames.
 
-    fields: list[TextureField]
+    Attributes:
+        textures: per MPI, [D, h, w, 4] uint8 straight-alpha planes, nearest first, the back
+            plane opaque (alpha 255), as rendered; the only copy of the texels kept in memory.
+        occupancy: per MPI, :func:`cmc.texture_kernel.occupancy` of its textures.
+        device: where :meth:`render` runs: the compiled kernel on the CPU
+            (:mod:`cmc.texture_kernel`), else :func:`cmc.rendering.render_image` over
+            :attr:`fields` (built on first use).
+    """
+
+    textures: list[np.ndarray]
+    occupancy: list[np.ndarray]
     frames: list[MPIFrame]
     width: int
     height: int
     near: float
     far: float
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    _fields: list[TextureField] | None = field(default=None, repr=False)
 
     @staticmethod
     def load(folder: str | Path, device: str | torch.device = "cpu") -> BakedScene:
+        from cmc.texture_kernel import occupancy
+
         folder = Path(folder)
         try:
             m = json.loads((folder / MANIFEST).read_text())
@@ -184,7 +199,7 @@ class BakedScene:
             raise BakedFormatError(
                 f"{folder} holds {m.get('format')} v{m.get('version')}, expected {FORMAT} v{VERSION}"
             )
-        fields, frames = [], []
+        textures, frames = [], []
         for e in m["mpis"]:
             (h, w), (rows, cols) = e["tile"], e["grid"]
             name = Path(e["atlas"]).name  # never follow paths out of the folder
@@ -193,14 +208,38 @@ class BakedScene:
             D = len(e["depths"])
             if atlas.shape[:2] != (rows * h, cols * w) or rows * cols < D:
                 raise BakedFormatError(f"{name} is {atlas.shape[1]}x{atlas.shape[0]}, expected {cols * w}x{rows * h}")
-            tiles = atlas.reshape(rows, h, cols, w, 4).transpose(0, 2, 4, 1, 3).reshape(rows * cols, 4, h, w)[:D]
-            rgba = torch.as_tensor(tiles.astype(np.float32) / 255.0, device=device)
+            tex = atlas.reshape(rows, h, cols, w, 4).transpose(0, 2, 1, 3, 4).reshape(rows * cols, h, w, 4)[:D].copy()
+            tex[-1, ..., 3] = 255  # the back plane is opaque (cmc.fields)
+            textures.append(tex)
             t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device)  # noqa: E731
             frames.append(
                 MPIFrame(t(e["K"]), t(e["world_from_cam"]), t(e["depths"]), m["width"], m["height"], float(e["margin"]))
             )
-            fields.append(TextureField(rgba))
-        return BakedScene(fields, frames, int(m["width"]), int(m["height"]), float(m["near"]), float(m["far"]))
+        return BakedScene(
+            textures,
+            [occupancy(tex) for tex in textures],
+            frames,
+            int(m["width"]),
+            int(m["height"]),
+            float(m["near"]),
+            float(m["far"]),
+            torch.device(device),
+        )
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the textures and occupancy maps (what a loaded scene costs in memory)."""
+        return sum(t.nbytes for t in self.textures) + sum(o.nbytes for o in self.occupancy)
+
+    @property
+    def fields(self) -> list[TextureField]:
+        """The textures as :class:`TextureField` (float32 on :attr:`device`), built on first use."""
+        if self._fields is None:
+            self._fields = [
+                TextureField(torch.as_tensor(t, device=self.device).permute(0, 3, 1, 2).float() / 255.0)
+                for t in self.textures
+            ]
+        return self._fields
 
     def render(
         self,
@@ -212,14 +251,34 @@ class BakedScene:
         mpi_index: int | None = None,
     ) -> ImageOutput:
         """Colour and depth for any camera (OpenCV convention), default size the input size;
-        the blend of all MPIs, or MPI ``mpi_index`` alone."""
-        return render_image(
-            self.fields,
-            self.frames,
-            K,
-            world_from_cam,
-            width or self.width,
-            height or self.height,
-            mpi_index,
-            min_weight=min_weight,
+        the blend of all MPIs (:func:`cmc.rendering.render_image`), or MPI ``mpi_index`` alone."""
+        width, height = width or self.width, height or self.height
+        if self.device.type != "cpu":
+            return render_image(
+                self.fields, self.frames, K, world_from_cam, width, height, mpi_index, min_weight=min_weight
+            )
+        from cmc.texture_kernel import render_baked_mpi
+
+        if mpi_index is None:
+            centers = torch.stack([f.world_from_ref[:3, 3] for f in self.frames])
+            P_t = torch.as_tensor(np.asarray(world_from_cam), dtype=torch.float32)
+            weights = blend_weights(centers, P_t[:3, 3], mean_baseline(centers))
+            use = [i for i in range(len(self.frames)) if weights[i] >= min_weight] or [int(weights.argmax())]
+        else:
+            weights, use = torch.ones(len(self.frames)), [mpi_index]
+        outs = []
+        for i in use:
+            rgb, depth, acc = render_baked_mpi(
+                self.textures[i], self.occupancy[i], self.frames[i], K, world_from_cam, width, height
+            )
+            outs.append(
+                RayOutput(
+                    torch.from_numpy(rgb).reshape(-1, 3),
+                    torch.from_numpy(depth).reshape(-1),
+                    torch.from_numpy(acc).reshape(-1),
+                )
+            )
+        out = blend(outs, weights[use])
+        return ImageOutput(
+            out.rgb.reshape(height, width, 3), out.depth.reshape(height, width), out.acc.reshape(height, width)
         )

@@ -66,7 +66,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
             store.close()
 
     app = FastAPI(title="CMC reconstruction service", version="1.0.0", description=DESCRIPTION, lifespan=lifespan)
-    renders = BakedCache(storage, settings.render_cache_scenes, settings.render_concurrency)
+    renders = BakedCache(storage, settings.render_cache_bytes, settings.render_concurrency)
     app.state.services = Services(settings, store, storage, queue, keys, renders, metrics)
     install_error_handlers(app)
     app.add_middleware(MetricsMiddleware, metrics=metrics)

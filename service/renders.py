@@ -39,10 +39,11 @@ class Rendered:
 
 
 class BakedCache:
-    """LRU cache of loaded baked scenes, keyed by scene id."""
+    """LRU cache of loaded baked scenes, keyed by scene id, bounded by their bytes in memory
+    (:attr:`cmc.baking.BakedScene.nbytes`); the scene just loaded always stays."""
 
-    def __init__(self, storage: Storage, capacity: int, concurrency: int):
-        self.storage, self.capacity = storage, capacity
+    def __init__(self, storage: Storage, capacity_bytes: int, concurrency: int):
+        self.storage, self.capacity_bytes = storage, capacity_bytes
         self._scenes: OrderedDict[str, Any] = OrderedDict()
         self._lock = threading.Lock()
         self._load_locks: dict[str, threading.Lock] = {}
@@ -63,10 +64,15 @@ class BakedCache:
             baked = BakedScene.load(self.storage.path(f"{scene_id}/baked"))
             with self._lock:
                 self._scenes[scene_id] = baked
-                while len(self._scenes) > self.capacity:
+                while len(self._scenes) > 1 and self.nbytes > self.capacity_bytes:
                     self._scenes.popitem(last=False)
                 self._load_locks.pop(scene_id, None)
         return baked
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the loaded scenes."""
+        return sum(s.nbytes for s in self._scenes.values())
 
     def evict(self, scene_id: str) -> None:
         with self._lock:

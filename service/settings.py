@@ -54,8 +54,11 @@ class Settings(BaseSettings):
     train_time_limit: float = Field(6 * 3600.0, gt=0, description="seconds for training + baking")
 
     # -- rendering --------------------------------------------------------------------------
-    render_cache_scenes: int = Field(
-        2, ge=1, description="baked scenes kept in memory (about 1.3 GB each at 504x378 with 3 x 48 planes)"
+    render_cache_bytes: int = Field(
+        2 << 30,
+        ge=1,
+        description="memory for loaded baked scenes (8-bit textures: about 150 MB each at 504x378 with 3 x 48 "
+        "planes); the least recently used are dropped beyond it, never the one just loaded",
     )
     render_concurrency: int = Field(2, ge=1, description="renders computed at once (others wait)")
     max_render_pixels: int = Field(4_000_000, ge=1, description="largest render (width x height)")

@@ -66,9 +66,11 @@ def test_baked_render_matches_slow_twin(trained, tmp_path):
         ]
         slow = blend(twins, blend_weights(centers, P[:3, 3], mean_baseline(centers)))
         assert float(slow.acc.max()) > 0.99
-        torch.testing.assert_close(fast.rgb.reshape(-1, 3), slow.rgb, rtol=0, atol=1e-5)
-        torch.testing.assert_close(fast.acc.reshape(-1), slow.acc, rtol=0, atol=1e-5)
-        torch.testing.assert_close(fast.depth.reshape(-1), slow.depth, rtol=1e-4, atol=1e-5)
+        # The CPU kernel stops a ray at transmittance 1e-4 (cmc.texture_kernel): colour and
+        # coverage may differ by that much, depth by that share of the far plane's depth.
+        torch.testing.assert_close(fast.rgb.reshape(-1, 3), slow.rgb, rtol=0, atol=1e-4)
+        torch.testing.assert_close(fast.acc.reshape(-1), slow.acc, rtol=0, atol=1e-4)
+        torch.testing.assert_close(fast.depth.reshape(-1), slow.depth, rtol=1e-4, atol=1e-4 * float(baked.far))
 
 
 def test_manifest_describes_the_atlases(trained, tmp_path):

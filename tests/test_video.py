@@ -65,10 +65,13 @@ def test_path_video_decodes_to_the_rendered_frames(baked_dir, tmp_path, kind):
     assert frames.shape == (12, H, W, 3)
     boxes = top_level_boxes(out)
     assert boxes.index("moov") < boxes.index("mdat")  # faststart: playable while streaming
-    # Frames differ along the path (every step moves; some reach far from the start) ...
+    # Frames differ along the path (every step moves, except where the dolly turns: frames 2-4
+    # and 8-10 render ~2/255 apart and H.264 may repeat a frame there; some reach far from the
+    # start) ...
     f = frames.astype(np.float32)
     steps = np.abs(np.diff(f, axis=0)).mean(axis=(1, 2, 3))
-    assert (steps > 0.1).all(), steps
+    turning = {"dolly": {2, 3, 8, 9}}.get(kind, set())
+    assert all(s > 0.1 for k, s in enumerate(steps) if k not in turning), steps
     assert np.abs(f - f[0]).mean(axis=(1, 2, 3)).max() > 5
     # ... and each is the baked render at its pose, up to H.264 (compared in luma: 4:2:0 chroma
     # subsampling blurs this tiny, saturated synthetic texture), closer than to any other pose.
