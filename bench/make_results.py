@@ -53,6 +53,18 @@ FERN_STEPS = [
     ("comboA", "prior 0.01 + sharper occlusion-aware start"),
     ("nodc", "... without L_dc^I and L_dc"),
     ("steps800", "`fast` now with 800 steps (not adopted: LPIPS a little better, PSNR/SSIM a little worse, 2x time)"),
+    # Three runs of a later session, one after another on a host then about 2x slower than above
+    # (the rerun of `fast` took 340 s): compare their train seconds with each other only.
+    ("rerun", "`fast` now, rerun in a later session (same scores; the host was ~2x slower)"),
+    (
+        "alphadetail",
+        "... + a full-resolution alpha-only level per plane (not adopted: +0.03 dB; the option was removed)",
+    ),
+    (
+        "planes80",
+        "... with 80 planes instead of 48 (not adopted: +0.05 dB, SSIM +0.013, LPIPS-vgg -0.006 for 1.2x the "
+        "training and 1.4x the render time)",
+    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
