@@ -58,12 +58,12 @@ FERN_STEPS = [
     ("rerun", "`fast` now, rerun in a later session (same scores; the host was ~2x slower)"),
     (
         "alphadetail",
-        "... + a full-resolution alpha-only level per plane (not adopted: +0.03 dB; the option was removed)",
+        "... + a full-resolution alpha-only level per plane (not adopted: +0.03 dB; tried in an uncommitted tree)",
     ),
     (
         "sparse01",
         "... + depth from triangulated SIFT matches of the three views, Cauchy on disparity, 0.01 (not adopted: "
-        "no change here, 1.7 dB worse at the synthetic halfway views; the option was removed)",
+        "no change here, 1.7 dB worse at the synthetic halfway views; the option was removed; code: commit 2dcbb76)",
     ),
     (
         "planes80",
@@ -88,7 +88,7 @@ VQ_ABLATION = [
     (
         "view_quality_synthetic_sparse01.json",
         "`fast` now + depth from triangulated SIFT matches, 0.01 (a later session, host ~2x slower; not adopted, "
-        "the option was removed)",
+        "the option was removed; code: commit 2dcbb76)",
     ),
     ("view_quality_synthetic_after.json", "**`fast` now**"),
 ]

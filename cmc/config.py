@@ -36,8 +36,6 @@ class LossConfig:
     lambda_dc: float = 1.0  # depth consistency between MPIs at unseen poses (Eq. 4.7)
     lambda_smooth: float = 0.0  # total variation of the finest alpha level (pyramid fields only)
     lambda_distortion: float = 0.0  # concentration of each ray's opacity (cmc.losses.distortion)
-    lambda_sparse_depth: float = 0.0  # rendered depth vs triangulated features (cmc.sparse_depth)
-    sparse_points_per_view: int = 256  # points drawn per input view per step for that term
     # Form of both depth-consistency terms: "squared" (the paper's, on depth / (far - near)) or
     # "cauchy" (occlusion-tolerant, on disparity; cmc.losses.robust_depth_consistency).
     depth_consistency: Literal["squared", "cauchy"] = "squared"

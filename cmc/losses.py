@@ -88,21 +88,3 @@ def distortion(outs: Sequence[RayOutput], num_planes: int) -> torch.Tensor:
         per_ray = 2 * (w * (s * W - S)).sum(1) + (w**2).sum(1) * delta / 3
         terms.append((_mask(o) * per_ray).mean())
     return torch.stack(terms).mean()
-
-
-def sparse_depth_loss(
-    outs: Sequence[RayOutput], depth: torch.Tensor, near: float, far: float, scale: float
-) -> torch.Tensor:
-    """Every MPI's rendered depth against triangulated points (cmc.sparse_depth) on the same rays:
-    mean over MPIs and covered rays of ``log(1 + ((s - s_point) / scale)^2)`` on normalised
-    disparity (as :func:`robust_depth_consistency`, so a wrong match costs little).
-
-    Shape: depth [R], the points' depths in the target camera.
-    """
-    inv_near, inv_far = 1.0 / near, 1.0 / far
-
-    def s(z: torch.Tensor) -> torch.Tensor:
-        return (1.0 / z.clamp_min(0.5 * near) - inv_far) / (inv_near - inv_far)
-
-    terms = [(_mask(o) * torch.log1p(((s(o.depth) - s(depth)) / scale) ** 2)).mean() for o in outs]
-    return torch.stack(terms).mean()

@@ -31,7 +31,6 @@ from cmc.losses import (
     distortion,
     reconstruction_loss,
     robust_depth_consistency,
-    sparse_depth_loss,
 )
 from cmc.model import CMCModel
 from cmc.rendering import render_ray_groups
@@ -92,17 +91,6 @@ class Trainer:
         self.K = torch.as_tensor(scene.cameras.K, dtype=torch.float32, device=self.device)
         self.poses = torch.as_tensor(scene.cameras.world_from_cam, dtype=torch.float32, device=self.device)
         self.depth_scale = scene.far - scene.near
-        self.sparse = []  # per input view: (uv [P, 2], depth [P]) of triangulated features
-        if cfg.loss.lambda_sparse_depth > 0:
-            from cmc.sparse_depth import triangulated_points
-
-            for p in triangulated_points(scene):
-                self.sparse.append(
-                    (
-                        torch.as_tensor(p.uv, dtype=torch.float32, device=self.device),
-                        torch.as_tensor(p.depth, dtype=torch.float32, device=self.device),
-                    )
-                )
         self.step = 0
 
     # -- one step ---------------------------------------------------------------------------
@@ -132,17 +120,8 @@ class Trainer:
             pose = sample_virtual_pose(self.scene.cameras.world_from_cam, rng, cfg.unseen_jitter)
             P = torch.as_tensor(pose, dtype=torch.float32, device=self.device)
             groups.append((self.K[0], P, self._random_pixels(gen, cfg.unseen_rays)[1]))
-        n_unseen = len(groups) - len(self.scene)
-        sparse_depths = []
-        for j, (uv_all, z_all) in enumerate(self.sparse):
-            if len(z_all) == 0:
-                continue
-            pick = torch.randint(0, len(z_all), (min(lc.sparse_points_per_view, len(z_all)),), generator=gen)
-            pick = pick.to(self.device)
-            groups.append((self.K[j], self.poses[j], uv_all[pick]))
-            sparse_depths.append(z_all[pick])
         # per_mpi[i][t]: MPI i's render of target t (one field query per MPI).
-        color_grad = [True] * len(self.scene) + [not lc.ac_geometry_only] * n_unseen + [False] * len(sparse_depths)
+        color_grad = [True] * len(self.scene) + [not lc.ac_geometry_only] * (len(groups) - len(self.scene))
         per_mpi = [render_ray_groups(f, fr, groups, color_grad) for f, fr in zip(fields, frames, strict=True)]
         by_target = list(zip(*per_mpi, strict=True))
         n = len(self.scene)
@@ -157,16 +136,7 @@ class Trainer:
             losses["dc_input"] = torch.stack([dc_loss(by_target[j]) for j in range(n)]).mean()
         else:
             losses["dc_input"] = zero
-        unseen = by_target[n : n + n_unseen]
-        if sparse_depths:
-            scale = 1.0 / (self.model.cfg.num_planes - 1)
-            sd = [
-                sparse_depth_loss(o, z, self.scene.near, self.scene.far, scale)
-                for o, z in zip(by_target[n + n_unseen :], sparse_depths, strict=True)
-            ]
-            losses["sparse_depth"] = torch.stack(sd).mean()
-        else:
-            losses["sparse_depth"] = zero
+        unseen = by_target[n:]
         losses["ac"] = torch.stack([appearance_consistency(o) for o in unseen]).mean() if unseen else zero
         losses["dc"] = torch.stack([dc_loss(o) for o in unseen]).mean() if unseen else zero
         if lc.lambda_distortion > 0:
@@ -182,7 +152,6 @@ class Trainer:
             + lc.lambda_dc * losses["dc"]
             + lc.lambda_smooth * losses["smooth"]
             + lc.lambda_distortion * losses["distortion"]
-            + lc.lambda_sparse_depth * losses["sparse_depth"]
         )
         return losses
 
