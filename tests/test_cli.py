@@ -102,6 +102,10 @@ def test_demo_runs_end_to_end(tmp_path):
     for name in ("novel_view.png", "novel_depth.png", "novel_depth.npy", "orbit.gif", "baked/mpi.json"):
         assert (tmp_path / "demo" / name).exists(), name
     assert summary["novel_view_psnr_db"] > 20
+    # The output holds what the summary lists (and the README names), nothing else (no checkpoint).
+    listed = {name.rstrip("/") for name in summary["outputs"]} | {"summary.json"}
+    assert {p.name for p in (tmp_path / "demo").iterdir()} == listed
+    assert not list((tmp_path / "demo").rglob("*.pt"))
 
 
 def test_bench_synthetic_reports_halfway_and_near_views(tmp_path, capsys):
