@@ -5,8 +5,9 @@ person sees), and focal lengths are in pixels of that upright full-resolution im
 copies map the image's outer corners onto each other (the ``cmc.cameras`` pixel convention), so
 intrinsics scale by ``new_size / old_size`` per axis (:meth:`cmc.cameras.Cameras.scaled`).
 
-Accepted: JPEG, PNG and WebP, and HEIC/HEIF when the ``pillow-heif`` package is installed. The
-format is taken from the file's bytes, never from its name. Everything unusable raises
+Accepted: JPEG, PNG, WebP and HEIC/HEIF (decoded by ``pillow-heif``, a dependency; an install
+without it refuses HEIC and says so). The format is taken from the file's bytes, never from its
+name. Everything unusable raises
 :class:`cmc.datasets.SceneError` with the photo's name in the message.
 """
 
@@ -31,7 +32,7 @@ class ImageTooLargeError(SceneError):
     """The image has more pixels than allowed (decompression-bomb guard)."""
 
 
-try:  # HEIC/HEIF (iPhone default) if the optional decoder is installed
+try:  # HEIC/HEIF (the iPhone default), decoded by pillow-heif (a dependency)
     from pillow_heif import register_heif_opener
 
     register_heif_opener()
@@ -41,6 +42,14 @@ except ImportError:  # pragma: no cover - depends on the environment
 
 # PIL format names we decode; every other parser is kept away from untrusted uploads.
 SUPPORTED_FORMATS: tuple[str, ...] = ("JPEG", "PNG", "WEBP") + (("HEIF",) if HEIF_SUPPORTED else ())
+
+
+def accepted_formats() -> str:
+    """The accepted formats as people name them, e.g. 'JPEG, PNG, WebP or HEIC'."""
+    names = [{"WEBP": "WebP", "HEIF": "HEIC"}.get(f, f) for f in SUPPORTED_FORMATS]
+    return ", ".join(names[:-1]) + " or " + names[-1]
+
+
 MAX_PIXELS = 120_000_000  # refuse larger images (decompression bombs); a 108 MP phone photo passes
 _FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)  # "35 mm equivalent" focal lengths refer to this
 _MM_PER_UNIT = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # EXIF FocalPlaneResolutionUnit: inch, cm, mm, um
@@ -84,8 +93,7 @@ def _open(path: Path, max_pixels: int) -> Image.Image:
     except Image.DecompressionBombError:
         raise ImageTooLargeError(f"{path.name}: image dimensions are too large (over {max_pixels} pixels)") from None
     except UnidentifiedImageError:
-        names = ", ".join({"WEBP": "WebP", "HEIF": "HEIC"}.get(f, f) for f in SUPPORTED_FORMATS)
-        raise UnsupportedImageError(f"{path.name} is not a supported image (accepted: {names})") from None
+        raise UnsupportedImageError(f"{path.name} is not a supported image (accepted: {accepted_formats()})") from None
     except OSError as e:
         raise SceneError(f"cannot read {path.name}: {e}") from None
     w, h = im.size

@@ -166,7 +166,14 @@ def check_images(upload: Upload, settings: Settings) -> list[str]:
     """Sniff every photo by content, check pixels and that it decodes; rename each file to the
     extension of its real format. Returns the storage names. Raises APIError 413/415/422."""
     from cmc.datasets import SceneError
-    from cmc.images import ImageTooLargeError, UnsupportedImageError, load_resized, read_photo_info, resized_size
+    from cmc.images import (
+        ImageTooLargeError,
+        UnsupportedImageError,
+        accepted_formats,
+        load_resized,
+        read_photo_info,
+        resized_size,
+    )
 
     n = len(upload.images)
     if n < settings.min_images:
@@ -182,7 +189,7 @@ def check_images(upload: Upload, settings: Settings) -> list[str]:
             info = read_photo_info(part.path, settings.max_image_pixels)
             load_resized(info, [resized_size(info.width, info.height, 64)], settings.max_image_pixels)
         except UnsupportedImageError:
-            raise APIError(415, "unsupported_image", f"{label} is not a JPEG, PNG, WebP or HEIC image") from None
+            raise APIError(415, "unsupported_image", f"{label} is not a {accepted_formats()} image") from None
         except ImageTooLargeError:
             raise APIError(
                 413, "image_too_large", f"{label} has more than {settings.max_image_pixels} pixels"

@@ -17,6 +17,7 @@ from cmc.datasets import SceneError
 from cmc.images import (
     HEIF_SUPPORTED,
     PhotoInfo,
+    accepted_formats,
     exif_focal_px,
     load_resized,
     read_photo_info,
@@ -60,8 +61,10 @@ def test_format_is_read_from_content_not_name(tmp_path: Path, fmt: str) -> None:
     assert read_photo_info(wrong).format == fmt
 
 
-@pytest.mark.skipif(not HEIF_SUPPORTED, reason="pillow-heif not installed")
 def test_heic_is_accepted(tmp_path: Path) -> None:
+    """iPhone photos: HEIC is decoded by the default install (pillow-heif is a dependency), and
+    the error for an unsupported file says so."""
+    assert HEIF_SUPPORTED and accepted_formats() == "JPEG, PNG, WebP or HEIC"
     path = tmp_path / "IMG_0001.HEIC"
     quadrants().save(path, format="HEIF", quality=90)
     info = read_photo_info(path)
