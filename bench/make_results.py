@@ -86,6 +86,10 @@ VQ_ABLATION = [
     ("view_quality_synthetic_cauchy1.json", "... with L_dc^I, L_dc in Cauchy form (0.1)"),
     ("view_quality_synthetic_after_ac.json", "`fast` now + L_ac"),
     (
+        "view_quality_synthetic_acgeom.json",
+        "`fast` now + L_ac moving alpha only, weight 1 (a later session, host ~2x slower; not adopted)",
+    ),
+    (
         "view_quality_synthetic_sparse01.json",
         "`fast` now + depth from triangulated SIFT matches, 0.01 (a later session, host ~2x slower; not adopted, "
         "the option was removed; code: commit 2dcbb76)",
