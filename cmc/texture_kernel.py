@@ -25,12 +25,16 @@ target camera transparent.
 from __future__ import annotations
 
 import math
+import threading
 
 import numba
 import numpy as np
 
 TILE_SHIFT = 3
 TILE = 1 << TILE_SHIFT  # texels per occupancy tile side
+# One kernel call at a time: each already uses every core, and numba's fallback threading layer
+# (workqueue, used where neither OpenMP nor TBB is installed) aborts on concurrent calls.
+_KERNEL_LOCK = threading.Lock()
 ROWS = 8  # target rows per block (the unit of parallel work; its accumulators stay in cache)
 
 
@@ -200,23 +204,24 @@ def render_baked_mpi(
     rgb = np.empty((height, width, 3), dtype=np.float32)
     depth = np.empty((height, width), dtype=np.float32)
     acc = np.empty((height, width), dtype=np.float32)
-    _composite(
-        np.ascontiguousarray(tex),
-        occ,
-        TILE,
-        Q,
-        scales,
-        offsets,
-        e,
-        e > 0,
-        width,
-        height,
-        min_transmittance,
-        ROWS,
-        rgb,
-        depth,
-        acc,
-    )
+    with _KERNEL_LOCK:
+        _composite(
+            np.ascontiguousarray(tex),
+            occ,
+            TILE,
+            Q,
+            scales,
+            offsets,
+            e,
+            e > 0,
+            width,
+            height,
+            min_transmittance,
+            ROWS,
+            rgb,
+            depth,
+            acc,
+        )
     return rgb, depth, acc
 
 
