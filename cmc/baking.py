@@ -41,9 +41,9 @@ import torch
 from PIL import Image
 
 from cmc.fields import MPIField, TextureField
-from cmc.geometry import blend_weights, mean_baseline
+from cmc.geometry import mean_baseline
 from cmc.model import CMCModel
-from cmc.rendering import ImageOutput, MPIFrame, RayOutput, blend, render_image
+from cmc.rendering import ImageOutput, MPIFrame, RayOutput, blend, blend_selection, render_image
 
 FORMAT = "cmc-mpi"
 VERSION = 1
@@ -259,13 +259,8 @@ class BakedScene:
             )
         from cmc.texture_kernel import render_baked_mpi
 
-        if mpi_index is None:
-            centers = torch.stack([f.world_from_ref[:3, 3] for f in self.frames])
-            P_t = torch.as_tensor(np.asarray(world_from_cam), dtype=torch.float32)
-            weights = blend_weights(centers, P_t[:3, 3], mean_baseline(centers))
-            use = [i for i in range(len(self.frames)) if weights[i] >= min_weight] or [int(weights.argmax())]
-        else:
-            weights, use = torch.ones(len(self.frames)), [mpi_index]
+        P_t = torch.as_tensor(np.asarray(world_from_cam), dtype=torch.float32)
+        weights, use = blend_selection(self.frames, P_t, mpi_index, min_weight)
         outs = []
         for i in use:
             rgb, depth, acc = render_baked_mpi(

@@ -368,6 +368,21 @@ def render_texture_image_reference(
     return RayOutput(rgb, depth, 1 - trans)
 
 
+def blend_selection(
+    frames: Sequence[MPIFrame], world_from_cam: torch.Tensor, mpi_index: int | None = None, min_weight: float = 0.0
+) -> tuple[torch.Tensor, list[int]]:
+    """Blend weights [N] of the MPIs for a target camera (:func:`cmc.geometry.blend_weights`) and
+    the MPIs to render: those weighing at least ``min_weight`` (at least the heaviest), or only
+    ``mpi_index`` (weights then all 1)."""
+    device = frames[0].K.device
+    if mpi_index is not None:
+        return torch.ones(len(frames), device=device), [mpi_index]
+    centers = torch.stack([f.world_from_ref[:3, 3] for f in frames])
+    weights = blend_weights(centers, world_from_cam[:3, 3].to(device), mean_baseline(centers))
+    use = [i for i in range(len(frames)) if weights[i] >= min_weight] or [int(weights.argmax())]
+    return weights, use
+
+
 @torch.no_grad()
 def render_image(
     fields: Sequence[MPIField],
@@ -388,14 +403,7 @@ def render_image(
     device = frames[0].K.device
     K_t = torch.as_tensor(np.asarray(K), dtype=torch.float32, device=device)
     P_t = torch.as_tensor(np.asarray(world_from_cam), dtype=torch.float32, device=device)
-    centers = torch.stack([f.world_from_ref[:3, 3] for f in frames])
-    baseline = mean_baseline(centers)
-    if mpi_index is None:
-        weights = blend_weights(centers, P_t[:3, 3], baseline)
-        use = [i for i in range(len(frames)) if weights[i] >= min_weight] or [int(weights.argmax())]
-    else:
-        weights = torch.ones(len(frames), device=device)
-        use = [mpi_index]
+    weights, use = blend_selection(frames, P_t, mpi_index, min_weight)
     parts = []
     if all(isinstance(fields[i], TextureField) for i in use):
         outs = [render_texture_image(fields[i].premultiplied, frames[i], K_t, P_t, width, height) for i in use]

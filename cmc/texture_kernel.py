@@ -101,55 +101,31 @@ def _composite(
                 x0, y0 = int(fx), int(fy)
                 if not occ[k, max(y0, 0) >> TILE_SHIFT, max(x0, 0) >> TILE_SHIFT]:
                     continue
+                # Bilinear taps (x0 | x1) x (y0 | y1); a tap outside the plane weighs 0 (zero padding).
                 wx, wy = np.float32(ix - fx), np.float32(iy - fy)
-                if x0 >= 0 and y0 >= 0 and x0 < w - 1 and y0 < h - 1:  # all four taps inside
-                    w00 = (1.0 - wx) * (1.0 - wy) * tex[k, y0, x0, 3]
-                    w01 = wx * (1.0 - wy) * tex[k, y0, x0 + 1, 3]
-                    w10 = (1.0 - wx) * wy * tex[k, y0 + 1, x0, 3]
-                    w11 = wx * wy * tex[k, y0 + 1, x0 + 1, 3]
-                    sa = (w00 + w01 + w10 + w11) * inv255
-                    if sa == 0.0:
-                        continue
-                    sr = (
-                        w00 * tex[k, y0, x0, 0]
-                        + w01 * tex[k, y0, x0 + 1, 0]
-                        + w10 * tex[k, y0 + 1, x0, 0]
-                        + w11 * tex[k, y0 + 1, x0 + 1, 0]
-                    ) * inv255sq
-                    sg = (
-                        w00 * tex[k, y0, x0, 1]
-                        + w01 * tex[k, y0, x0 + 1, 1]
-                        + w10 * tex[k, y0 + 1, x0, 1]
-                        + w11 * tex[k, y0 + 1, x0 + 1, 1]
-                    ) * inv255sq
-                    sb = (
-                        w00 * tex[k, y0, x0, 2]
-                        + w01 * tex[k, y0, x0 + 1, 2]
-                        + w10 * tex[k, y0 + 1, x0, 2]
-                        + w11 * tex[k, y0 + 1, x0 + 1, 2]
-                    ) * inv255sq
-                else:
-                    sr = sg = sb = sa = np.float32(0.0)
-                    for dy in range(2):
-                        yy = y0 + dy
-                        if yy < 0 or yy >= h:
-                            continue
-                        wgt_y = wy if dy else 1.0 - wy
-                        for dx in range(2):
-                            xx = x0 + dx
-                            if xx < 0 or xx >= w:
-                                continue
-                            wa = wgt_y * (wx if dx else 1.0 - wx) * tex[k, yy, xx, 3] * inv255
-                            sa += wa
-                            wa *= inv255
-                            sr += wa * tex[k, yy, xx, 0]
-                            sg += wa * tex[k, yy, xx, 1]
-                            sb += wa * tex[k, yy, xx, 2]
+                wx0 = 1.0 - wx if x0 >= 0 else 0.0
+                wx1 = wx if x0 + 1 < w else 0.0
+                wy0 = 1.0 - wy if y0 >= 0 else 0.0
+                wy1 = wy if y0 + 1 < h else 0.0
+                xa, xb, ya, yb = max(x0, 0), min(x0 + 1, w - 1), max(y0, 0), min(y0 + 1, h - 1)
+                w00 = wy0 * wx0 * tex[k, ya, xa, 3]
+                w01 = wy0 * wx1 * tex[k, ya, xb, 3]
+                w10 = wy1 * wx0 * tex[k, yb, xa, 3]
+                w11 = wy1 * wx1 * tex[k, yb, xb, 3]
+                sa = (w00 + w01 + w10 + w11) * inv255
                 if sa == 0.0:
                     continue
-                acc_rgb[j, 0] += T * sr
-                acc_rgb[j, 1] += T * sg
-                acc_rgb[j, 2] += T * sb
+                for c in range(3):  # premultiplied colour: texel colour x texel alpha, both 8-bit
+                    acc_rgb[j, c] += (
+                        T
+                        * inv255sq
+                        * (
+                            w00 * tex[k, ya, xa, c]
+                            + w01 * tex[k, ya, xb, c]
+                            + w10 * tex[k, yb, xa, c]
+                            + w11 * tex[k, yb, xb, c]
+                        )
+                    )
                 dsum[j] += T * sa * e[k]
                 trans[j] = T * (1.0 - sa)
         for j in range(n):
