@@ -24,6 +24,7 @@ import torch
 
 from cmc.config import TrainConfig
 from cmc.datasets import Scene, validate_scene
+from cmc.eta import TrainingETA
 from cmc.geometry import sample_virtual_pose
 from cmc.losses import (
     appearance_consistency,
@@ -47,7 +48,8 @@ class Progress:
     """Reported to the progress hook after every step.
 
     Attributes: step (completed steps), total, losses (name -> value of the last step),
-    elapsed_s (this process's training seconds), eta_s (estimated seconds left).
+    elapsed_s (this process's training seconds), eta_s (estimated seconds left in training, each
+    loss phase at its own step time: :class:`cmc.eta.TrainingETA`).
     """
 
     step: int
@@ -213,7 +215,8 @@ class Trainer:
         """
         if checkpoint_path is not None and resume and Path(checkpoint_path).exists():
             self.load_checkpoint(checkpoint_path)
-        start_step, t0 = self.step, time.perf_counter()
+        t0 = t_last = time.perf_counter()
+        eta = TrainingETA.for_config(self.cfg, len(self.scene))
         history = []
         while self.step < self.cfg.steps:
             if should_stop is not None and should_stop():
@@ -224,10 +227,13 @@ class Trainer:
             history.append(losses)
             if checkpoint_path is not None and self.step % self.cfg.checkpoint_every == 0:
                 self.save_checkpoint(checkpoint_path)
+            now = time.perf_counter()
+            eta.record(self.step - 1, now - t_last)
+            t_last = now
             if on_progress is not None:
-                elapsed = time.perf_counter() - t0
-                rate = elapsed / (self.step - start_step)
-                on_progress(Progress(self.step, self.cfg.steps, losses, elapsed, rate * (self.cfg.steps - self.step)))
+                remaining = eta.remaining_s(self.step)
+                assert remaining is not None  # a step was just measured
+                on_progress(Progress(self.step, self.cfg.steps, losses, now - t0, remaining))
         if checkpoint_path is not None:
             self.save_checkpoint(checkpoint_path)
         seconds = time.perf_counter() - t0

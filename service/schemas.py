@@ -52,7 +52,11 @@ class SceneOut(BaseModel):
     id: str
     status: Status
     progress: float = Field(description="progress of the current stage, 0-1")
-    eta_seconds: float | None = Field(description="estimated seconds left in the current stage, when known")
+    eta_seconds: float | None = Field(
+        description="estimated seconds until the scene is ready: what is left of the current stage plus the "
+        "stages after it (null while queued; 0 when ready). Until training has run its first steps, training "
+        "is estimated at a reference CPU's speed"
+    )
     detail: str | None = Field(description="what the job is doing, for people")
     error: JobError | None = Field(description="set when status is 'failed'")
     options: SceneOptions

@@ -72,10 +72,28 @@ def png(a: np.ndarray) -> bytes:
 
 @pytest.fixture(scope="module")
 def ready(tmp_path_factory):
-    """(client, scene id, synthetic scene, novel camera) of a scene trained to ``ready``."""
+    """(client, scene id, synthetic scene, novel camera) of a scene trained to ``ready``; the
+    job's writes of (status, progress, eta_seconds) to its record are in ``client.job_writes``."""
     parts, scene, novel = synthetic_upload(steps=25)
     app = create_app(settings_for(tmp_path_factory.mktemp("ready")))
+    store, writes, state = app.state.services.store, [], {}
+    heartbeat, advance = store.heartbeat, store.advance
+
+    def record(fields: dict) -> None:
+        state.update({k: v for k, v in fields.items() if k in ("status", "progress", "eta_seconds")})
+        writes.append((state.get("status"), state.get("progress"), state.get("eta_seconds")))
+
+    def recording_heartbeat(scene_id, worker, lease_seconds, **fields):
+        record(fields)
+        return heartbeat(scene_id, worker, lease_seconds, **fields)
+
+    def recording_advance(scene_id, worker, phase, status, **fields):
+        record({**fields, "status": status})
+        return advance(scene_id, worker, phase, status, **fields)
+
+    store.heartbeat, store.advance = recording_heartbeat, recording_advance
     with TestClient(app) as client:
+        client.job_writes = writes  # type: ignore[attr-defined]
         r = client.post("/v1/scenes", files=parts)
         assert r.status_code == 202, r.text
         body = wait_for(client, r.json()["id"], ("ready", "failed"))
@@ -91,6 +109,22 @@ def test_status_of_a_ready_scene(ready) -> None:
     assert body["options"] == {"preset": "fast", "steps": 25, "resolution": 96, "seed": 0}
     assert body["created_at"] <= body["started_at"] <= body["finished_at"]
     assert body["links"]["render"] == f"/v1/scenes/{sid}/render"
+
+
+def test_eta_seconds_covers_the_rest_of_the_job(ready) -> None:
+    """eta_seconds is the whole job's: while estimating poses it holds the training to come, in
+    every later stage it is set, and the bake has an estimate of its own."""
+    from cmc.eta import reference_training_s
+
+    client, _, _, _ = ready
+    writes = client.job_writes
+    assert [w[0] for w in writes][:1] == ["estimating_poses"] and writes[-1] == ("ready", 1.0, 0.0)
+    assert all(eta is not None and eta >= 0 for _, _, eta in writes)
+    poses = [eta for status, _, eta in writes if status == "estimating_poses"]
+    assert min(poses) >= reference_training_s(25)  # 25 steps and the bake are still to come
+    assert any(status == "training" and 0 < p < 1 for status, p, _ in writes)
+    bake = [eta for status, _, eta in writes if status == "baking"]
+    assert bake and all(eta > 0 for eta in bake)
 
 
 def test_render_and_depth_match_the_ground_truth(ready) -> None:

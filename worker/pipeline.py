@@ -199,12 +199,30 @@ POSE_STAGE_PROGRESS = {
 }
 
 
+def _training_prior_s(options: dict[str, Any]) -> float:
+    """Seconds of training and baking, at the reference's speed (cmc.eta), for the scene's options."""
+    from cmc.eta import PRESET_STEPS, reference_training_s
+
+    return reference_training_s(options.get("steps") or PRESET_STEPS[options["preset"]])
+
+
 def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     from cmc.cameras import CameraError
     from cmc.datasets import SceneError
+    from cmc.eta import REFERENCE_POSES_S
     from cmc.poses import PoseEstimationCancelled, PoseEstimationError, estimate_poses, poses_from_client
 
-    hb.set(status="estimating_poses", progress=0.0, eta_seconds=None, detail="estimating camera poses")
+    later_s = _training_prior_s(rec.options)
+    t0 = time.perf_counter()
+
+    def on_stage(stage: str) -> None:
+        """Progress through the pose stages; the stages done so far give the time left in them."""
+        done = POSE_STAGE_PROGRESS.get(stage, 0.0)
+        left = REFERENCE_POSES_S if done == 0 else (time.perf_counter() - t0) * (1 - done) / done
+        hb.set(progress=done, eta_seconds=round(left + later_s, 1), detail=f"camera poses: {stage}")
+
+    eta = round(REFERENCE_POSES_S + later_s, 1)
+    hb.set(status="estimating_poses", progress=0.0, eta_seconds=eta, detail="estimating camera poses")
     hb.flush()
     scene_dir = _fresh_dir(ctx, f"{rec.id}/scene")
     uploads = [ctx.storage.path(f"{rec.id}/uploads/{name}") for name in rec.upload_files]
@@ -215,7 +233,7 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
         keep_originals=False,  # storage keeps the uploads
         max_pixels=ctx.settings.max_image_pixels,
         convention="opencv",
-        on_stage=lambda stage: hb.set(progress=POSE_STAGE_PROGRESS.get(stage, 0.0), detail=f"camera poses: {stage}"),
+        on_stage=on_stage,
     )
     try:
         if rec.has_cameras:
@@ -233,7 +251,8 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
         raise JobFailure("invalid_images", str(e)) from None
     hb.check()
     stats = {**rec.stats, "poses": {"timings_s": result.timings, **result.stats}}
-    waiting = dict(progress=0.0, eta_seconds=None, detail="waiting for a training worker", stats=stats)
+    eta = round(_training_prior_s(rec.options), 1)
+    waiting = dict(progress=0.0, eta_seconds=eta, detail="waiting for a training worker", stats=stats)
     if not ctx.store.advance(rec.id, ctx.worker_id, "train", "training", **waiting):
         raise JobStopped("lease_lost")
     submit_next(ctx, rec.id, "train")
@@ -257,6 +276,7 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     from cmc.baking import bake
     from cmc.config import preset_config
     from cmc.datasets import SceneError, load_scene_folder
+    from cmc.eta import REFERENCE_STEP_S, bake_steps
     from cmc.training import Progress, Trainer, TrainingCancelled
 
     s, opts = ctx.settings, rec.options
@@ -270,6 +290,10 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     if s.checkpoint_every:
         overrides["checkpoint_every"] = s.checkpoint_every
     cfg = preset_config(opts["preset"], **overrides)
+    cams = scene.cameras
+    bake_cost = bake_steps(cams.width, cams.height, cfg.model.margin, len(scene), cfg.rays_per_view)
+    step_s = REFERENCE_STEP_S  # until this worker has measured its own steps
+    hb.set(eta_seconds=round((cfg.steps + bake_cost) * step_s, 1))  # while the model is built (plane sweep)
     device = s.device
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -288,7 +312,7 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     hb.set(
         status="training",
         progress=trainer.step / cfg.steps,
-        eta_seconds=None,
+        eta_seconds=round((cfg.steps - trainer.step + bake_cost) * step_s, 1),
         detail=f"training ({cfg.preset} preset, {cfg.steps} steps, {device})",
         stats=stats,
     )
@@ -296,7 +320,9 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     t0 = time.perf_counter()
 
     def on_progress(p: Progress) -> None:
-        hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s, 1))
+        nonlocal step_s
+        step_s = p.elapsed_s / (p.step - resumed_from)
+        hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s + bake_cost * step_s, 1))
 
     try:
         trainer.fit(on_progress=on_progress, should_stop=hb.should_stop, checkpoint_path=ckpt, resume=False)
@@ -305,7 +331,7 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     except FloatingPointError as e:
         raise JobFailure("training_failed", str(e)) from None
     train_s = time.perf_counter() - t0
-    hb.set(status="baking", progress=0.0, eta_seconds=None, detail="baking the MPIs")
+    hb.set(status="baking", progress=0.0, eta_seconds=round(bake_cost * step_s, 1), detail="baking the MPIs")
     hb.flush()
     hb.check()
     t0 = time.perf_counter()

@@ -1,0 +1,107 @@
+"""Remaining-time estimates: training steps whose cost changes with the loss schedule, and the
+stages of a job that have not started yet (the API's ``eta_seconds``). No torch here.
+
+Training: the first ``recon_only_fraction`` of the steps render only the input views' rays (the
+reconstruction loss); from the first full-loss step on, each step also renders the rays of the
+unseen poses, so steps get slower and a rate measured early underestimates what is left.
+:class:`TrainingETA` keeps each phase's mean step time apart and, until the full phase has run a
+step, predicts its step time as the reconstruction-only one times :func:`full_cost_ratio`, the
+ratio of rays a step renders in the two phases (rendering every ray through every MPI dominates
+a step). From its first step on, the full phase's own measured time replaces the prediction.
+
+Stages that have not run yet are estimated from a reference run until they measure their own
+speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2-core CPU.
+
+* :data:`REFERENCE_POSES_S`: structure from motion, 12.7 s (median of 3, bench/poses_fern.md).
+* :data:`REFERENCE_STEP_S`: a training step, plane sweep included, 0.41 s (400 steps in 165 s,
+  bench/view_quality_fern_after.json). A GPU trains much faster: until training has run a step,
+  a job's estimate is pessimistic there.
+* Baking, in training steps (:func:`bake_steps`): modelled, not measured; the bake evaluates
+  every texel of every plane once, a step its rays' samples forward and backward.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from cmc.config import TrainConfig
+
+REFERENCE_POSES_S = 12.7
+REFERENCE_STEP_S = 0.41
+# TrainConfig.steps of each preset (cmc.config.preset_config, which needs torch to import; the
+# pose-estimation worker does not load it). tests/test_eta.py checks that the two agree.
+PRESET_STEPS = {"fast": 400, "paper": 20000}
+
+
+def first_full_step(cfg: TrainConfig) -> int:
+    """Index of the first step with the full loss (``Trainer.compute_losses`` switches at
+    ``step >= recon_only_fraction * steps``)."""
+    return math.ceil(cfg.loss.recon_only_fraction * cfg.steps)
+
+
+def full_cost_ratio(cfg: TrainConfig, num_views: int) -> float:
+    """Rays rendered by a full-loss step over those of a reconstruction-only step (>= 1)."""
+    recon = num_views * cfg.rays_per_view
+    lc = cfg.loss
+    unseen = cfg.unseen_poses * cfg.unseen_rays if (lc.lambda_ac > 0 or lc.lambda_dc > 0) else 0
+    return (recon + unseen) / recon
+
+
+def bake_steps(width: int, height: int, margin: float, num_views: int, rays_per_view: int) -> float:
+    """Baking's cost in reconstruction-only training steps (a model, not a measurement).
+
+    Per plane of every MPI the bake evaluates the field once at each of ``margin^2 * W * H``
+    texels; a step evaluates it at ``num_views * rays_per_view`` samples, forward and backward
+    (about three forward passes). Fern at 504x378, fast preset: about 15 steps.
+    """
+    return margin**2 * width * height / (3.0 * num_views * rays_per_view)
+
+
+def reference_training_s(steps: int) -> float:
+    """Seconds to train ``steps`` steps and bake, at the reference's speed (fern, ``fast``)."""
+    return (steps + bake_steps(504, 378, 1.2, 3, 2048)) * REFERENCE_STEP_S
+
+
+class TrainingETA:
+    """Seconds left in a training run, with each loss phase's step time measured apart.
+
+    Args:
+        total: steps of the run; first_full: index of the first full-loss step
+            (:func:`first_full_step`); full_cost_ratio: predicted full / reconstruction-only step
+            time (:func:`full_cost_ratio`), used only until one phase has no measurement.
+    """
+
+    def __init__(self, total: int, first_full: int, full_cost_ratio: float):
+        self.total, self.first_full, self.ratio = total, min(max(first_full, 0), total), full_cost_ratio
+        self._seconds = [0.0, 0.0]  # per phase: reconstruction-only, full
+        self._count = [0, 0]
+
+    @classmethod
+    def for_config(cls, cfg: TrainConfig, num_views: int) -> TrainingETA:
+        return cls(cfg.steps, first_full_step(cfg), full_cost_ratio(cfg, num_views))
+
+    def record(self, step: int, seconds: float) -> None:
+        """Step ``step`` (0-based) took ``seconds``."""
+        phase = int(step >= self.first_full)
+        self._seconds[phase] += seconds
+        self._count[phase] += 1
+
+    def step_s(self, full: bool) -> float | None:
+        """Seconds per step of a phase: its measured mean, else predicted from the other phase."""
+        recon, full_ = (s / n if n else None for s, n in zip(self._seconds, self._count, strict=True))
+        if full:
+            return full_ if full_ is not None else (None if recon is None else recon * self.ratio)
+        return recon if recon is not None else (None if full_ is None else full_ / self.ratio)
+
+    def remaining_s(self, done: int) -> float | None:
+        """Seconds for steps ``done`` .. ``total - 1``; None before any step was measured."""
+        recon_left = max(self.first_full - done, 0)
+        full_left = max(self.total - max(done, self.first_full), 0)
+        if recon_left + full_left <= 0:
+            return 0.0
+        recon_s, full_s = self.step_s(False), self.step_s(True)
+        if recon_s is None or full_s is None:
+            return None
+        return recon_left * recon_s + full_left * full_s

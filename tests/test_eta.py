@@ -1,0 +1,94 @@
+"""Remaining-time estimates: a training run whose steps get slower when the full loss starts."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import cmc.training
+from cmc.config import PRESETS, preset_config
+from cmc.datasets import synthetic_scene
+from cmc.eta import PRESET_STEPS, TrainingETA, bake_steps, first_full_step, full_cost_ratio
+from cmc.training import Trainer
+
+
+def _naive_remaining_s(elapsed: float, done: int, total: int) -> float:
+    """The estimate before cmc.eta: the mean step time so far times the steps left."""
+    return elapsed / done * (total - done)
+
+
+def test_phase_aware_estimate_beats_the_rate_based_one() -> None:
+    """Steps of the full phase take 1.5x those before it (with 5 % jitter); the estimator's
+    prior ratio is 1.4, a little off, as a ray count would be."""
+    total, first_full = 400, 120
+    rng = np.random.default_rng(0)
+    times = np.where(np.arange(total) < first_full, 0.2, 0.3) * rng.uniform(0.95, 1.05, total)
+    eta = TrainingETA(total, first_full, full_cost_ratio=1.4)
+    assert eta.remaining_s(0) is None  # nothing measured yet
+    for done in range(1, total + 1):
+        eta.record(done - 1, float(times[done - 1]))
+        truth = float(times[done:].sum())
+        ours = eta.remaining_s(done)
+        naive = _naive_remaining_s(float(times[:done].sum()), done, total)
+        if 10 <= done <= first_full:  # early, and up to the switch: the naive estimate is far off
+            assert abs(ours - truth) <= 0.1 * truth, (done, ours, truth)
+            assert abs(ours - truth) < abs(naive - truth)
+        if done >= first_full + 10 and done < total:  # the full phase's own time is measured
+            assert abs(ours - truth) <= 0.05 * truth, (done, ours, truth)
+    naive_at_switch = _naive_remaining_s(float(times[:first_full].sum()), first_full, total)
+    truth_at_switch = float(times[first_full:].sum())
+    assert naive_at_switch < 0.7 * truth_at_switch  # the old estimate was 30 % short here
+    assert eta.remaining_s(total) == 0.0
+
+
+def test_fit_reports_the_phase_aware_estimate(monkeypatch) -> None:
+    """Trainer.fit's Progress.eta_s, on a fake clock: recon-only steps take 1 s, full ones 1.4 s."""
+    cfg = preset_config("fast", steps=100, rays_per_view=64, unseen_rays=64)
+    cfg = replace(cfg, model=replace(cfg.model, num_planes=4))
+    trainer = Trainer(synthetic_scene(num_views=3, width=32, height=24), cfg)
+    first_full = first_full_step(cfg)
+    assert first_full == 30
+
+    class Clock:
+        now = 0.0
+
+        def perf_counter(self) -> float:
+            return self.now
+
+    clock = Clock()
+
+    def fake_step(self: Trainer) -> dict[str, float]:
+        clock.now += 1.0 if self.step < first_full else 1.4
+        self.step += 1
+        return {"mse": 0.0}
+
+    monkeypatch.setattr(cmc.training, "time", clock)
+    monkeypatch.setattr(Trainer, "train_step", fake_step)
+    seen = {}
+    trainer.fit(on_progress=lambda p: seen.setdefault(p.step, p.eta_s))
+    truth = {done: max(first_full - done, 0) * 1.0 + (100 - max(done, first_full)) * 1.4 for done in seen}
+    # before the switch: recon-only time x the ray ratio 4/3 (the truth here is 1.4)
+    assert seen[10] == pytest.approx(20 + 70 * 4 / 3)
+    naive = _naive_remaining_s(10.0, 10, 100)
+    assert abs(seen[10] - truth[10]) <= 0.05 * truth[10] and abs(naive - truth[10]) > 0.2 * truth[10]
+    assert seen[50] == pytest.approx(truth[50])  # in the full phase: its own measured time
+    assert seen[100] == 0.0
+
+
+def test_cost_model_follows_the_config() -> None:
+    fast = preset_config("fast")
+    assert full_cost_ratio(fast, 3) == pytest.approx((3 * 2048 + 2048) / (3 * 2048))
+    silent = replace(fast, loss=replace(fast.loss, lambda_ac=0.0, lambda_dc=0.0))
+    assert full_cost_ratio(silent, 3) == 1.0  # no unseen poses are rendered then
+    for steps in (1, 7, 10, 400):
+        cfg = preset_config("fast", steps=steps)
+        # the first step that Trainer.compute_losses runs with the full loss
+        assert first_full_step(cfg) == next(s for s in range(steps + 1) if s >= cfg.loss.recon_only_fraction * steps)
+    assert bake_steps(504, 378, 1.2, 3, 2048) == pytest.approx(14.88, abs=0.01)
+    assert bake_steps(1008, 756, 1.2, 3, 2048) == pytest.approx(4 * bake_steps(504, 378, 1.2, 3, 2048))
+
+
+def test_preset_steps_match_the_presets() -> None:
+    assert PRESET_STEPS == {name: preset_config(name).steps for name in PRESETS}
