@@ -114,6 +114,23 @@ def camera_path(kind: PathKind, world_from_cam: np.ndarray, near: float, far: fl
     raise ValueError(f"unknown camera path {kind!r}; use one of {', '.join(PATH_KINDS)}")
 
 
+def baked_path_cameras(manifest: dict, kind: PathKind, num_frames: int) -> Cameras:
+    """The cameras of a path through a baked scene, from its ``mpi.json`` alone (no torch).
+
+    Args:
+        manifest: the parsed ``mpi.json`` of a ``cmc-mpi`` folder (cmc.baking).
+        kind, num_frames: as in :func:`camera_path`.
+    Returns:
+        F cameras at the input image size: the first MPI's intrinsics and :func:`camera_path`
+        through the MPIs' reference cameras and depth range (the videos' cameras,
+        :func:`cmc.video.path_cameras`, at that size).
+    """
+    refs = np.array([m["world_from_cam"] for m in manifest["mpis"]], dtype=np.float64)
+    poses = camera_path(kind, refs, float(manifest["near"]), float(manifest["far"]), num_frames)
+    K = np.asarray(manifest["mpis"][0]["K"], dtype=np.float64)
+    return Cameras(np.repeat(K[None], len(poses), axis=0), poses, int(manifest["width"]), int(manifest["height"]))
+
+
 def orbit_poses(cameras: Cameras, num_frames: int, radius_fraction: float = 0.5) -> np.ndarray:
     """[F, 4, 4] the orbit path (:func:`orbit_path`) of a batch of cameras."""
     return orbit_path(cameras.world_from_cam, num_frames, radius_fraction)

@@ -32,6 +32,7 @@ from service.renders import (
     encode_image,
 )
 from service.schemas import (
+    CameraPath,
     ErrorBody,
     Health,
     JobError,
@@ -125,6 +126,7 @@ def scene_out(rec: SceneRecord) -> SceneOut:
             mpi=f"{base}/mpi",
             viewer=f"{base}/viewer",
             video=f"{base}/video",
+            camera_path=f"{base}/camera-path",
         ),
     )
 
@@ -360,6 +362,32 @@ def get_cameras(
     by_stem = {f.rsplit(".", 1)[0]: name for f, name in zip(rec.upload_files, rec.upload_names, strict=True)}
     names = [by_stem.get(p.rsplit("/", 1)[-1].rsplit(".", 1)[0], p) for p in cf.file_paths]
     return camera_file_to_dict(CameraFile(cf.cameras, names, cf.near_far), convention)
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/camera-path",
+    response_model=CameraPath,
+    responses=ERRORS_READY,
+    summary="Novel cameras along a path through the capture (the videos' paths), each a render body",
+)
+def get_camera_path(
+    scene_id: SceneId,
+    svc: Svc,
+    owner: Owner,
+    path: Literal["spiral", "orbit", "dolly"] = "orbit",
+    frames: Annotated[int, Query(ge=1, le=1000, description="cameras along the closed path")] = 30,
+    convention: Literal["opengl", "opencv"] = "opengl",
+) -> CameraPath:
+    from cmc.camera_paths import baked_path_cameras
+    from cmc.cameras import CameraFile, camera_file_to_dict
+
+    _ready_scene(svc, scene_id, owner)
+    manifest = json.loads(svc.storage.read_bytes(f"{scene_id}/baked/mpi.json"))
+    cams = baked_path_cameras(manifest, path, frames)
+    data = camera_file_to_dict(CameraFile(cams, [path] * len(cams)), convention)
+    size = {"w": data["w"], "h": data["h"], "convention": convention}
+    bodies = [RenderCamera(**{k: v for k, v in f.items() if k != "file_path"}, **size) for f in data["frames"]]
+    return CameraPath(path=path, frames=bodies)
 
 
 @router.post(

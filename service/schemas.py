@@ -46,6 +46,7 @@ class SceneLinks(BaseModel):
     mpi: str
     viewer: str
     video: str
+    camera_path: str
 
 
 class SceneOut(BaseModel):
@@ -87,6 +88,13 @@ class RenderCamera(BaseModel):
     h: int = Field(gt=0, le=8192, description="image height, pixels")
     convention: Literal["opengl", "opencv"] = Field(
         "opengl", description="axes: opengl (x right, y up, z back; ARKit) or opencv (x right, y down, z forward)"
+    )
+
+
+class CameraPath(BaseModel):
+    path: Literal["spiral", "orbit", "dolly"]
+    frames: list[RenderCamera] = Field(
+        description="cameras along the path, in order; each is a body for /render and /depth as it is"
     )
 
 

@@ -18,12 +18,16 @@ from fastapi.testclient import TestClient
 from helpers import render_body, synthetic_upload
 from PIL import Image
 
-from cmc.cameras import convert_pose
+from cmc.baking import BakedScene
+from cmc.camera_paths import camera_path, capture_radius, mean_pose, orbit_path
+from cmc.cameras import Cameras, convert_pose
 from cmc.datasets import DEFAULT_LAYERS, render_layers
 from cmc.metrics import psnr
+from cmc.video import path_cameras
 from service.api import negotiate
 from service.app import create_app
 from service.auth import key_digest
+from service.schemas import RenderCamera
 from service.settings import load_settings
 
 
@@ -156,6 +160,38 @@ def test_render_and_depth_match_the_ground_truth(ready) -> None:
     assert np.abs(exact - depth).max() <= float(d.headers["depth-scale"])
     preview = client.post(f"/v1/scenes/{sid}/depth?preview=true", json=render_body(novel))
     assert Image.open(io.BytesIO(preview.content)).mode == "RGB"
+
+
+def test_camera_path_gives_novel_cameras_that_render_as_they_are(ready) -> None:
+    client, sid, scene, _ = ready
+    r = client.get(f"/v1/scenes/{sid}/camera-path?path=orbit&frames=8")
+    assert r.status_code == 200 and r.json()["path"] == "orbit"
+    frames = r.json()["frames"]
+    assert len(frames) == 8 and set(frames[0]) == set(RenderCamera.model_fields)
+    # where cmc.camera_paths puts them: the orbit of the baked MPIs' reference cameras, as in the video
+    manifest = client.get(f"/v1/scenes/{sid}/mpi").json()
+    refs = np.array([m["world_from_cam"] for m in manifest["mpis"]])
+    poses = np.array([convert_pose(np.array(f["transform_matrix"]), "opengl", "opencv") for f in frames])
+    np.testing.assert_allclose(poses, orbit_path(refs, 8), atol=1e-9)
+    baked = BakedScene.load(client.app.state.services.storage.path(f"{sid}/baked"))
+    K, video_poses, _, _ = path_cameras(baked, "orbit", 8)
+    np.testing.assert_allclose(poses, video_poses, atol=1e-6)
+    assert [frames[0][k] for k in ("fl_x", "fl_y", "cx", "cy")] == pytest.approx([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    offsets = np.linalg.norm(poses[:, None, :3, 3] - scene.cameras.centers[None], axis=-1)
+    assert offsets.min() > 0.1 * capture_radius(scene.cameras.world_from_cam)  # no input camera: novel views
+    # the scene's centre (on the mean camera's axis, halfway in disparity) is seen near the image centre
+    mean = mean_pose(refs)
+    centre = mean[:3, 3] + mean[:3, 2] * 2 / (1 / manifest["near"] + 1 / manifest["far"])
+    uv, z = Cameras(np.repeat(K[None], 8, axis=0), poses, 96, 72).project(centre[None])
+    assert (z > 0).all() and np.abs(uv[:, 0] - [48, 36]).max() < 0.15 * 96
+    # a path camera is a render body as it is: POST it unchanged
+    img = client.post(f"/v1/scenes/{sid}/render", json=frames[3])
+    assert img.status_code == 200 and Image.open(io.BytesIO(img.content)).size == (96, 72)
+    spiral = client.get(f"/v1/scenes/{sid}/camera-path?path=spiral&frames=5&convention=opencv").json()["frames"]
+    assert len(spiral) == 5 and spiral[2]["convention"] == "opencv"
+    expected = camera_path("spiral", refs, manifest["near"], manifest["far"], 5)[2]
+    np.testing.assert_allclose(spiral[2]["transform_matrix"], expected, atol=1e-9)
+    assert client.get(f"/v1/scenes/{sid}/camera-path?frames=0").status_code == 422
 
 
 def test_render_content_negotiation_and_bad_cameras(ready) -> None:
