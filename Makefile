@@ -19,7 +19,12 @@ chromium:  ## Debian's chromium for the viewer tests (apt-get, as root); without
 		DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; } || \
 		echo "chromium is not installed: the viewer tests will be skipped"
 
-test: install chromium  ## the whole test suite (what CI runs)
+jq:  ## jq for the README walk-through test (apt-get, as root); without it that test skips, except under CI
+	@command -v jq >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive apt-get install -y -qq jq >/dev/null; } || \
+		echo "jq is not installed: the README walk-through test will be skipped"
+
+test: install chromium jq  ## the whole test suite (what CI runs)
 	$(VENV)/bin/ruff check cmc service worker tests bench
 	CMC_SHARED_DIR=$(SHARED) $(VENV)/bin/python -m pytest -q
 
@@ -28,4 +33,4 @@ bench-fern: install  ## LLFF fern, fast preset, CPU (about 5 minutes), then rege
 		--scenes fern --preset fast --out bench/fern_fast_cpu.json --save-dir bench/runs
 	$(VENV)/bin/python bench/make_results.py
 
-.PHONY: install chromium demo test bench-fern
+.PHONY: install chromium jq demo test bench-fern

@@ -1,0 +1,140 @@
+"""The README's examples, run as they stand: the curl walk-through against a real ``cmc serve``."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from helpers import SHARED_DIR
+from PIL import Image
+
+ROOT = Path(__file__).resolve().parents[1]
+README = (ROOT / "README.md").read_text()
+FERN = SHARED_DIR / "datasets" / "llff" / "fern" / "images"
+PHOTOS = ("IMG_4027.JPG", "IMG_4036.JPG", "IMG_4045.JPG")
+
+
+def fenced_block(heading: str, first_line: str) -> str:
+    """The first fenced code block under ``heading`` whose first line is ``first_line``."""
+    section = README.split(heading, 1)[1]
+    for block in re.findall(r"```[a-z]*\n(.*?)```", section, flags=re.S):
+        if block.startswith(first_line):
+            return block
+    raise AssertionError(f"no code block starting with {first_line!r} under {heading!r}")
+
+
+def walkthrough(**values: str) -> str:
+    """The walk-through script with the variables ``values`` (API, F, OPTIONS, OUT) set instead."""
+    script = fenced_block("### Walk-through with curl", "#!/usr/bin/env bash")
+    for name, value in values.items():
+        script, n = re.subn(rf"^{name}=.*$", f"{name}={shlex.quote(value)}", script, flags=re.M)
+        assert n == 1, f"the walk-through no longer sets {name} on a line of its own"
+    return script
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    """URL of ``cmc serve`` (the README's command) in a subprocess, with its own data folder."""
+    if shutil.which("jq") is None:
+        if os.environ.get("CI", "").lower() not in ("", "0", "false"):
+            pytest.fail("jq is needed by the README walk-through (make jq installs it)")
+        pytest.skip("jq is not installed")
+    tmp = tmp_path_factory.mktemp("serve")
+    port = _free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CMC_")}  # no keys: open on localhost
+    cmc = Path(sys.executable).with_name("cmc")
+    log = open(tmp / "serve.log", "wb")  # noqa: SIM115 - closed below
+    proc = subprocess.Popen(
+        [str(cmc), "serve", "--port", str(port), "--data-dir", str(tmp / "data")],
+        env={**env, "CMC_DEVICE": "cpu"},
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    url = f"http://127.0.0.1:{port}"
+    try:
+        t0 = time.time()
+        while not _healthy(url):
+            assert proc.poll() is None and time.time() - t0 < 60, (tmp / "serve.log").read_text()
+            time.sleep(0.3)
+        yield url
+    finally:
+        proc.terminate()
+        proc.wait(30)
+        log.close()
+
+
+def _healthy(url: str) -> bool:
+    try:
+        return httpx.get(f"{url}/healthz", timeout=2).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+def run(script: str, cwd: Path) -> subprocess.CompletedProcess:
+    path = cwd / "walk.sh"
+    path.write_text(script)
+    return subprocess.run(["bash", "-euo", "pipefail", str(path)], cwd=cwd, capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def photos(tmp_path_factory) -> Path:
+    """The README's three fern photos, downscaled to 504 px (EXIF kept: SfM's focal prior)."""
+    if not FERN.exists():
+        pytest.skip(f"needs the LLFF fern photos in {FERN}")
+    folder = tmp_path_factory.mktemp("photos")
+    for name in PHOTOS:
+        with Image.open(FERN / name) as im:
+            exif = im.info.get("exif", b"")
+            im.thumbnail((504, 504))
+            im.save(folder / name, "JPEG", quality=90, exif=exif)
+    return folder
+
+
+def test_curl_walkthrough_runs_as_written(server: str, photos: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    options = json.dumps({"steps": 4, "resolution": 64})
+    r = run(walkthrough(API=server, F=str(photos), OPTIONS=options, OUT=str(out)), tmp_path)
+    assert r.returncode == 0, f"stdout:\n{r.stdout}\nstderr:\n{r.stderr}"
+    assert '"status":"ready"' in r.stdout and f"results in {out}" in r.stdout
+    view = Image.open(out / "view.png")
+    assert view.format == "PNG" and view.size == (64, 48)
+    depth = np.load(out / "depth.npy")
+    assert depth.shape == (48, 64) and (depth > 0).mean() > 0.9
+    assert Image.open(out / "depth.png").format == "PNG"
+    # the rendered camera is a novel one: none of the photos' cameras
+    camera = json.loads((out / "camera.json").read_text())
+    centres = [np.array(f["transform_matrix"])[:3, 3] for f in json.loads((out / "cameras.json").read_text())["frames"]]
+    assert min(np.linalg.norm(np.array(camera["transform_matrix"])[:3, 3] - c) for c in centres) > 1e-3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "walk.sh"]  # nothing left in the working folder
+
+
+def test_curl_walkthrough_stops_on_errors(server: str, photos: Path, tmp_path: Path) -> None:
+    """An API error stops the script with the API's message; a failed job exits non-zero."""
+    refused = run(walkthrough(API=server, F=str(photos), OPTIONS='{"steps": 0}', OUT=str(tmp_path)), tmp_path)
+    assert refused.returncode != 0 and "invalid_options" in refused.stderr
+    blank = tmp_path / "blank"
+    blank.mkdir()
+    for k, name in enumerate(PHOTOS):  # featureless photos: pose estimation fails
+        Image.new("RGB", (96, 72), (100 + k, 100, 100)).save(blank / name, "PNG")
+    failed = run(walkthrough(API=server, F=str(blank), OPTIONS="{}", OUT=str(tmp_path)), tmp_path)
+    assert failed.returncode == 1 and "job failed:" in failed.stderr, failed.stderr
+    assert any(name in failed.stderr for name in PHOTOS)  # the message names the photos
+    assert not (tmp_path / "view.png").exists()
