@@ -1,4 +1,5 @@
-"""The README's examples, run as they stand: the curl walk-through against a real ``cmc serve``."""
+"""The README's examples as they stand: the curl walk-through run against a real ``cmc serve``,
+the ARKit cameras file through the server's parser, the limits against the settings."""
 
 from __future__ import annotations
 
@@ -18,6 +19,10 @@ import numpy as np
 import pytest
 from helpers import SHARED_DIR
 from PIL import Image
+
+from cmc.cameras import camera_file_from_dict
+from cmc.poses import match_frames
+from service.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
@@ -138,3 +143,33 @@ def test_curl_walkthrough_stops_on_errors(server: str, photos: Path, tmp_path: P
     assert failed.returncode == 1 and "job failed:" in failed.stderr, failed.stderr
     assert any(name in failed.stderr for name in PHOTOS)  # the message names the photos
     assert not (tmp_path / "view.png").exists()
+
+
+def test_arkit_example_is_accepted_by_the_cameras_parser() -> None:
+    heading = "### Poses from ARKit or ARCore"
+    cf = camera_file_from_dict(json.loads(fenced_block(heading, "{")))
+    assert (cf.cameras.width, cf.cameras.height) == (1920, 1440) and cf.near_far is None
+    # the request example's photos are the frames' photos, as the server matches them
+    request = fenced_block(heading, "curl")
+    names = re.findall(r"images=@(\S+)", request)
+    assert match_frames(cf.file_paths, [(n,) for n in names]) == [0, 1, 2]
+    # the prose: 15 cm steps sideways, every camera turned towards a point 2 m ahead (ARKit's -z)
+    centres = cf.cameras.centers
+    np.testing.assert_allclose(np.diff(centres, axis=0), [[0.15, 0, 0]] * 2, atol=1e-9)
+    target = centres[1] + [0.0, 0.0, -2.0]
+    axes = cf.cameras.world_from_cam[:, :3, 2]  # optical axes (OpenCV z) in the world
+    to_target = target - centres
+    off_axis = np.linalg.norm(np.cross(axes, to_target), axis=1) / np.linalg.norm(to_target, axis=1)
+    assert off_axis.max() < 1e-3
+
+
+def test_limits_table_gives_the_settings_defaults() -> None:
+    defaults = Settings.model_construct()  # the defaults, not this environment's CMC_* values
+    section = README.split("### Upload limits", 1)[1].split("###", 1)[0]
+    rows = re.findall(r"^\|[^|]*\| (`CMC_\w+`(?: / `CMC_\w+`)?) \| ([^|]+?) \|", section, flags=re.M)
+    assert len(rows) == 7
+    for names, values in rows:
+        fields = [n.strip("`").removeprefix("CMC_").lower() for n in names.split(" / ")]
+        numbers = [float(v.split()[0]) for v in values.split(" / ")]
+        assert numbers == [getattr(defaults, f) for f in fields], names
+    assert f"({defaults.max_request_bytes} by default" in section
