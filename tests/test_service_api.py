@@ -136,6 +136,9 @@ def test_render_content_negotiation_and_bad_cameras(ready) -> None:
     skew = {**body, "transform_matrix": (np.array(body["transform_matrix"]) * [[1, 2, 1, 1]] * 1).tolist()}
     r = client.post(f"/v1/scenes/{sid}/render", json=skew)
     assert r.status_code == 422 and r.json()["error"]["code"] == "invalid_camera"
+    for route in ("render", "depth"):  # intrinsics that underflow to a singular matrix
+        tiny = client.post(f"/v1/scenes/{sid}/{route}", json={**body, "fl_x": 1e-300})
+        assert tiny.status_code == 422 and tiny.json()["error"]["code"] == "invalid_camera", tiny.text
     huge = client.post(f"/v1/scenes/{sid}/render", json={**body, "w": 8000, "h": 8000})
     assert huge.status_code == 422 and huge.json()["error"]["code"] == "render_too_large"
     missing = client.post(f"/v1/scenes/{sid}/render", json={"fl_x": 10})
