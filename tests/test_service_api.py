@@ -267,6 +267,7 @@ def _replace(parts: list, index: int, name: str, data: bytes) -> list:
         ("steps", 422, "invalid_options"),
         ("cameras_json", 422, "invalid_cameras"),
         ("cameras_names", 422, "invalid_cameras"),
+        ("cameras_deep", 422, "invalid_cameras"),
         ("request", 413, "payload_too_large"),
         ("not_multipart", 415, "unsupported_media_type"),
     ],
@@ -303,6 +304,8 @@ def test_bad_uploads_are_refused_and_nothing_is_kept(api, case: str, status: int
         cams = json.loads(rest[0][1][1])
         cams["frames"][2]["file_path"] = "someone_else.png"
         parts = images + [("cameras", ("c.json", json.dumps(cams).encode(), "application/json"))] + rest[1:]
+    elif case == "cameras_deep":  # nested too deeply for Python's JSON parser
+        parts = images + [("cameras", ("c.json", b"[" * 100_000, "application/json"))] + rest[1:]
     elif case == "request":  # every part within its limit, the whole over the request limit
         overrides.update(max_image_bytes=40_000, max_cameras_bytes=20_000)
         parts = parts + [("padding", (None, b"x" * 200_000))]
