@@ -17,6 +17,7 @@ from service.auth import KeyRing
 from service.errors import install_error_handlers
 from service.jobs import CeleryJobQueue, JobQueue
 from service.metrics import Metrics, MetricsMiddleware
+from service.middleware import BodyGuard
 from service.renders import BakedCache
 from service.settings import Settings, load_settings
 from service.storage import LocalStorage
@@ -69,6 +70,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     renders = BakedCache(storage, settings.render_cache_bytes, settings.render_concurrency)
     app.state.services = Services(settings, store, storage, queue, keys, renders, metrics)
     install_error_handlers(app)
+    app.add_middleware(BodyGuard, keys=keys, max_json_bytes=settings.max_json_bytes, streamed={("POST", "/v1/scenes")})
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.include_router(router)
     return app

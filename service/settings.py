@@ -39,6 +39,7 @@ class Settings(BaseSettings):
     max_image_bytes: int = Field(25 * MB, ge=1024, description="bytes per uploaded image")
     max_image_pixels: int = Field(60_000_000, ge=1, description="pixels per uploaded image")
     max_cameras_bytes: int = Field(1 * MB, ge=1024, description="bytes of the optional cameras / options parts")
+    max_json_bytes: int = Field(64 * 1024, ge=1024, description="bytes of any other request body (a render camera)")
 
     # -- jobs -------------------------------------------------------------------------------
     device: str = Field("auto", description="torch device for training: auto, cpu, cuda, cuda:N")

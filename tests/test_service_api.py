@@ -9,11 +9,16 @@ from __future__ import annotations
 
 import io
 import json
+import socket
+import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import pytest
+import uvicorn
 from fastapi.testclient import TestClient
 from helpers import render_body, synthetic_upload
 from PIL import Image
@@ -59,6 +64,50 @@ def wait_for(client: TestClient, scene_id: str, statuses: tuple[str, ...], timeo
             return body
         time.sleep(0.2)
     raise AssertionError(f"scene {scene_id} not {statuses} after {timeout} s: {body}")
+
+
+@contextmanager
+def live_server(app) -> Iterator[int]:
+    """``app`` served by uvicorn on a free localhost port (yielded), in a thread of this process."""
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    t0 = time.time()
+    while not server.started:
+        assert thread.is_alive() and time.time() - t0 < 30, "uvicorn did not start"
+        time.sleep(0.02)
+    try:
+        yield server.servers[0].sockets[0].getsockname()[1]
+    finally:
+        server.should_exit = True
+        thread.join(10)
+
+
+def raw_exchange(port: int, head: str, body_chunks: list[bytes], timeout: float = 3.0) -> tuple[int, dict, float]:
+    """Send a request head and some body bytes on a socket, never the rest, and read the answer:
+    (status, JSON body, seconds to answer). Fails when the server waits for the rest instead."""
+    with socket.create_connection(("127.0.0.1", port), timeout=timeout) as sock:
+        t0 = time.perf_counter()
+        sock.sendall(head.replace("\n", "\r\n").encode() + b"\r\n")
+        for chunk in body_chunks:
+            sock.sendall(chunk)
+        data = b""
+        while b"\r\n\r\n" not in data or len(data.split(b"\r\n\r\n", 1)[1]) < _length(data):
+            more = sock.recv(65536)
+            if not more:
+                break
+            data += more
+        elapsed = time.perf_counter() - t0
+    head_bytes, _, payload = data.partition(b"\r\n\r\n")
+    return int(head_bytes.split()[1]), json.loads(payload), elapsed
+
+
+def _length(data: bytes) -> int:
+    for line in data.split(b"\r\n\r\n", 1)[0].split(b"\r\n")[1:]:
+        name, _, value = line.partition(b":")
+        if name.strip().lower() == b"content-length":
+            return int(value)
+    return 0
 
 
 def png(a: np.ndarray) -> bytes:
@@ -359,6 +408,29 @@ def test_api_keys_scope_scenes_to_their_owner(api, tmp_path: Path) -> None:
     assert [s["id"] for s in client.get("/v1/scenes", headers=a).json()["items"]] == [sid]
     assert client.get("/v1/scenes", headers=b).json()["items"] == []
     assert client.get("/healthz").status_code == 200  # probes need no key
+
+
+def test_request_bodies_are_refused_before_they_are_read(api) -> None:
+    app = create_app(settings_for(api.storage.parent, api_keys="key-a", max_json_bytes=4096), queue=RecordingQueue())
+    render = "POST /v1/scenes/0123456789abcdef0123456789abcdef/render HTTP/1.1\nHost: 127.0.0.1\n"
+    json_head = render + "Content-Type: application/json\n"
+    with live_server(app) as port:
+        # Content-Length announces 100 MB; 2 bytes are sent, and the answer comes without the rest
+        status, body, seconds = raw_exchange(port, json_head + "Content-Length: 100000000\n", [b"{}"])
+        assert status == 401 and body["error"]["code"] == "unauthorized" and seconds < 1
+        status, _, _ = raw_exchange(port, render + "Transfer-Encoding: chunked\n", [b"2\r\n{}\r\n"])
+        assert status == 401  # a body of unannounced length, too
+        keyed = json_head + "Authorization: Bearer key-a\n"
+        status, body, seconds = raw_exchange(port, keyed + "Content-Length: 100000000\n", [b"{}"])
+        assert status == 413 and body["error"]["code"] == "payload_too_large" and seconds < 1
+        # streamed without a length: refused once the bytes cross the limit, not at the end
+        chunks = [b"400\r\n" + b" " * 1024 + b"\r\n"] * 5
+        status, body, seconds = raw_exchange(port, keyed + "Transfer-Encoding: chunked\n", chunks)
+        assert status == 413 and body["error"]["code"] == "payload_too_large" and seconds < 1
+    # within the limit, a keyed body goes on to the route (a scene that does not exist)
+    camera = {"transform_matrix": np.eye(4).tolist(), "fl_x": 50, "w": 8, "h": 8}
+    r = TestClient(app).post(render.split()[1], json=camera, headers={"Authorization": "Bearer key-a"})
+    assert r.status_code == 404 and r.json()["error"]["code"] == "not_found"
 
 
 def test_list_is_paginated_newest_first(api) -> None:
