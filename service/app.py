@@ -17,7 +17,7 @@ from service.auth import KeyRing
 from service.errors import install_error_handlers
 from service.jobs import CeleryJobQueue, JobQueue
 from service.metrics import Metrics, MetricsMiddleware
-from service.middleware import BodyGuard
+from service.middleware import BodyGuard, LocalOnly
 from service.renders import BakedCache
 from service.settings import Settings, load_settings
 from service.storage import LocalStorage
@@ -71,6 +71,8 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     app.state.services = Services(settings, store, storage, queue, keys, renders, metrics)
     install_error_handlers(app)
     app.add_middleware(BodyGuard, keys=keys, max_json_bytes=settings.max_json_bytes, streamed={("POST", "/v1/scenes")})
+    if keys.open:
+        app.add_middleware(LocalOnly, extra_hosts=set(settings.allowed_hosts.split(",")))
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.include_router(router)
     return app

@@ -32,6 +32,9 @@ class Settings(BaseSettings):
     # -- auth -------------------------------------------------------------------------------
     api_keys: str = Field("", description="comma-separated API keys (hashed on load, never stored)")
     api_keys_file: Path | None = Field(None, description="file of SHA-256 hex digests of API keys, one a line")
+    allowed_hosts: str = Field(
+        "", description="without API keys: host names accepted besides localhost, 127.0.0.1, [::1] (comma-separated)"
+    )
 
     # -- upload limits ----------------------------------------------------------------------
     min_images: int = Field(3, ge=2, le=20)

@@ -53,6 +53,7 @@ class RecordingQueue:
 
 def settings_for(tmp: Path, **overrides):
     base = dict(data_dir=tmp, mode="embedded", api_keys="", api_keys_file=None, heartbeat_seconds=0.2)
+    base["allowed_hosts"] = "testserver"  # the Host of TestClient's requests (open mode accepts only local ones)
     return load_settings(**{**base, **overrides})
 
 
@@ -431,6 +432,30 @@ def test_request_bodies_are_refused_before_they_are_read(api) -> None:
     camera = {"transform_matrix": np.eye(4).tolist(), "fl_x": 50, "w": 8, "h": 8}
     r = TestClient(app).post(render.split()[1], json=camera, headers={"Authorization": "Bearer key-a"})
     assert r.status_code == 404 and r.json()["error"]["code"] == "not_found"
+
+
+def test_open_mode_answers_only_local_hosts_and_pages(api) -> None:
+    client = api(allowed_hosts="mybox.lan")
+    for host in ("127.0.0.1:8000", "localhost", "LOCALHOST:1", "[::1]:8000", "mybox.lan:8000"):
+        assert client.get("/healthz", headers={"Host": host}).status_code == 200, host
+    for host in ("attacker.example", "localhost.attacker.example:8000", "127.0.0.1.nip.io", "[::1"):
+        r = client.get("/v1/scenes", headers={"Host": host})  # DNS rebinding: another name, this address
+        assert r.status_code == 421 and r.json()["error"]["code"] == "host_not_allowed", host
+    parts, _, _ = synthetic_upload()
+    local = {"Host": "127.0.0.1:8000"}
+    for page in ({"Origin": "https://attacker.example"}, {"Origin": "null"}, {"Sec-Fetch-Site": "cross-site"}):
+        r = client.post("/v1/scenes", files=parts, headers={**local, **page})  # a form on another site
+        assert r.status_code == 403 and r.json()["error"]["code"] == "cross_site_request", page
+    assert api.queue.sent == [] and stored_scenes(api.storage) == []
+    same_site = {"Origin": "http://localhost:8000", "Sec-Fetch-Site": "same-site"}
+    sid = client.post("/v1/scenes", files=parts, headers={**local, **same_site}).json()["id"]
+    assert client.post("/v1/scenes", files=parts, headers=local).status_code == 202  # curl, scripts: no Origin
+    gone = client.delete(f"/v1/scenes/{sid}", headers={**local, "Origin": "http://attacker.example:8000"})
+    assert gone.status_code == 403
+    # with API keys, neither Host nor Origin matters (the key does)
+    keyed = api(api_keys="key-a", allowed_hosts="")
+    key = {"Authorization": "Bearer key-a", "Host": "api.example.com", "Origin": "https://app.example.com"}
+    assert keyed.post("/v1/scenes", files=parts, headers=key).status_code == 202
 
 
 def test_list_is_paginated_newest_first(api) -> None:
