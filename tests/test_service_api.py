@@ -13,9 +13,11 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 import uvicorn
@@ -257,6 +259,55 @@ def test_operations_endpoints(ready) -> None:
     assert 'cmc_job_duration_seconds_count{status="ready"} 1.0' in text
     assert 'cmc_queue_depth{queue="embedded"} 0.0' in text
     assert 'cmc_http_requests_total{method="GET",route="/v1/scenes/{scene_id}",status="200"}' in text
+
+
+def _baked_ready_scene(app) -> tuple[str, dict]:
+    """A ready scene whose baked MPI comes from an untrained model (no job ran), and a camera."""
+    from cmc.baking import bake
+    from cmc.config import preset_config
+    from cmc.datasets import synthetic_scene
+    from cmc.training import Trainer
+
+    svc = app.state.services
+    rec, _ = svc.store.create("local", {}, ["a.png", "b.png"], ["00.png", "01.png"], False)
+    assert svc.store.claim(rec.id, "poses", "test", 60) is not None
+    assert svc.store.advance(rec.id, "test", "done", "ready")
+    scene = synthetic_scene(num_views=2, width=32, height=24)
+    bake(
+        Trainer(scene, preset_config("fast", steps=1, rays_per_view=64, unseen_rays=64)).model,
+        svc.storage.path(f"{rec.id}/baked"),
+    )
+    return rec.id, render_body(scene.cameras)
+
+
+def test_renders_never_hold_up_probes_and_status(api, monkeypatch) -> None:
+    from cmc.baking import BakedScene
+
+    app = create_app(settings_for(api.storage.parent, render_concurrency=2, render_queue=4), queue=RecordingQueue())
+    sid, camera = _baked_ready_scene(app)
+    drawn = BakedScene.render
+
+    def slow_render(self, *args, **kwargs):
+        time.sleep(0.5)
+        return drawn(self, *args, **kwargs)
+
+    monkeypatch.setattr(BakedScene, "render", slow_render)
+    with live_server(app) as port, httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=60) as client:
+        assert client.post(f"/v1/scenes/{sid}/render", json=camera).status_code == 200  # loads the scene
+        with ThreadPoolExecutor(48) as pool:
+            renders = [pool.submit(client.post, f"/v1/scenes/{sid}/render", json=camera) for _ in range(48)]
+            time.sleep(0.3)  # all of them arrived
+            for path in ("/healthz", "/readyz", f"/v1/scenes/{sid}"):
+                t0 = time.perf_counter()
+                assert client.get(path).status_code == 200
+                assert time.perf_counter() - t0 < 0.5, path
+            answers = [r.result() for r in renders]
+    drawn_ok = [r for r in answers if r.status_code == 200]
+    busy = [r for r in answers if r.status_code == 503]
+    assert len(drawn_ok) + len(busy) == 48 and 6 <= len(drawn_ok) < 48  # 2 drawing + 4 waiting at a time
+    assert all(r.content[:4] == b"\x89PNG" for r in drawn_ok)
+    assert {r.json()["error"]["code"] for r in busy} == {"renderer_busy"}
+    assert {r.headers["retry-after"] for r in busy} == {"1"}
 
 
 # -- uploads, limits, auth: nothing trains ------------------------------------------------------------
