@@ -9,7 +9,11 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -621,6 +625,73 @@ def test_unfinished_job_resumes_after_a_restart(tmp_path: Path) -> None:
         rec = client.app.state.services.store.get(sid)
     assert rec.stats["train"]["resumed_from_step"] >= 10
     assert rec.attempts == 0  # a clean stop is not a lost worker
+
+
+class ServeProcess:
+    """``cmc serve`` (embedded runner) as a child process on a free port."""
+
+    def __init__(self, data_dir: Path):
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            self.url = f"http://127.0.0.1:{sock.getsockname()[1]}"
+        root = Path(__file__).resolve().parents[1]
+        env = {**os.environ, "PYTHONPATH": str(root), "CMC_DEVICE": "cpu", "CMC_HEARTBEAT_SECONDS": "0.2"}
+        args = [sys.executable, "-m", "cmc.cli", "serve", "--log-level", "warning", "--data-dir", str(data_dir)]
+        self.log = data_dir.parent / f"{data_dir.name}.log"
+        with open(self.log, "ab") as log:
+            self.proc = subprocess.Popen([*args, "--port", self.url.rsplit(":", 1)[1]], env=env, stdout=log, stderr=log)
+        self.wait(lambda: httpx.get(f"{self.url}/healthz").status_code == 200, "start")
+
+    def wait(self, ready, what: str, timeout: float = 240):
+        t0 = time.time()
+        while time.time() - t0 < timeout:
+            assert self.proc.poll() is None, f"cmc serve exited:\n{self.log.read_text()[-3000:]}"
+            try:
+                if result := ready():
+                    return result
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        raise AssertionError(f"cmc serve: no {what} after {timeout} s:\n{self.log.read_text()[-3000:]}")
+
+    def status(self, scene_id: str) -> dict:
+        return httpx.get(f"{self.url}/v1/scenes/{scene_id}").json()
+
+    def terminate(self) -> None:
+        self.proc.send_signal(signal.SIGTERM)
+        self.proc.wait(60)
+
+
+def test_sigterm_after_pose_estimation_checkpoints_and_resumes(tmp_path: Path) -> None:
+    """SfM loads pycolmap, whose logging library takes over SIGTERM when imported; a later
+    stop must still checkpoint the training job (the preset's 250-step period is never reached)."""
+    import torch
+
+    from service.store import SceneStore
+
+    data = tmp_path / "data"
+    server = ServeProcess(data)
+    try:
+        grey = [("images", (f"IMG_{i}.png", png(np.full((72, 96, 3), 0.4)), "image/png")) for i in range(3)]
+        sfm = httpx.post(f"{server.url}/v1/scenes", files=grey).json()["id"]  # no cameras: runs SfM
+        assert server.wait(lambda: server.status(sfm)["status"] == "failed", "pose estimation")
+        parts, _, _ = synthetic_upload(steps=5000)
+        sid = httpx.post(f"{server.url}/v1/scenes", files=parts).json()["id"]
+        server.wait(lambda: server.status(sid)["status"] == "training" and server.status(sid)["progress"] > 0, "steps")
+    finally:
+        server.terminate()  # uvicorn stops gracefully, then exits by re-raising the signal
+    ckpt = data / "storage" / sid / "checkpoint.pt"
+    assert ckpt.exists(), f"no checkpoint at shutdown:\n{server.log.read_text()[-3000:]}"
+    step = torch.load(ckpt, weights_only=False)["step"]
+    assert 0 < step < 250
+    server = ServeProcess(data)
+    try:
+        store = SceneStore(f"sqlite:///{data.resolve() / 'cmc.db'}")
+        resumed = server.wait(lambda: store.get(sid).stats.get("train", {}).get("resumed_from_step"), "resume")
+        store.close()
+    finally:
+        server.terminate()
+    assert resumed == step
 
 
 def test_serve_refuses_open_network_without_keys_and_new_api_key(tmp_path: Path, capsys, monkeypatch) -> None:
