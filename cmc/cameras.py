@@ -27,6 +27,11 @@ import numpy as np
 
 PoseConvention = Literal["opencv", "opengl"]
 
+# Focal lengths in image widths (fl_x) / heights (fl_y): fields of view from about 169 down to 0.6 degrees.
+FOCAL_RATIO = (0.05, 100.0)
+# How far (in image sizes) the principal point may be from the image centre.
+MAX_PRINCIPAL_OFFSET = 10.0
+
 # Flips the y and z camera axes: maps OpenCV camera coordinates to OpenGL ones and back.
 _CV_GL_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -99,7 +104,8 @@ class Cameras:
 
 
 def validate_cameras(K: np.ndarray, world_from_cam: np.ndarray, width: int, height: int) -> None:
-    """Raise CameraError unless intrinsics and poses are finite, rigid and consistent."""
+    """Raise CameraError unless intrinsics and poses are finite, rigid and consistent, and the
+    intrinsics sane for the image size (:data:`FOCAL_RATIO`, :data:`MAX_PRINCIPAL_OFFSET`)."""
     if K.ndim != 3 or K.shape[1:] != (3, 3):
         raise CameraError(f"intrinsics must have shape [N, 3, 3], got {list(K.shape)}")
     if world_from_cam.ndim != 3 or world_from_cam.shape[1:] != (4, 4):
@@ -112,8 +118,23 @@ def validate_cameras(K: np.ndarray, world_from_cam: np.ndarray, width: int, heig
         bad = np.where(~np.isfinite(arr).reshape(len(arr), -1).all(axis=1))[0]
         if len(bad):
             raise CameraError(f"{name} of camera(s) {bad.tolist()} contain NaN or infinity")
-    if (K[:, 0, 0] <= 0).any() or (K[:, 1, 1] <= 0).any():
-        raise CameraError("focal lengths must be positive")
+    # Bounded focal lengths and principal points keep K well conditioned (in float32 too).
+    size = np.array([width, height], dtype=np.float64)
+    ratio = np.stack([K[:, 0, 0], K[:, 1, 1]], axis=1) / size
+    bad = np.where(((ratio < FOCAL_RATIO[0]) | (ratio > FOCAL_RATIO[1])).any(axis=1))[0]
+    if len(bad):
+        lo, hi = FOCAL_RATIO
+        raise CameraError(
+            f"focal lengths of camera(s) {bad.tolist()} must be {lo} to {hi:g} times the image width (fl_x) "
+            f"and height (fl_y), got fl_x={K[bad[0], 0, 0]:.6g}, fl_y={K[bad[0], 1, 1]:.6g} for {width}x{height}"
+        )
+    offset = np.abs(K[:, :2, 2] - size / 2) / size
+    bad = np.where((offset > MAX_PRINCIPAL_OFFSET).any(axis=1))[0]
+    if len(bad):
+        raise CameraError(
+            f"principal point of camera(s) {bad.tolist()} must be within {MAX_PRINCIPAL_OFFSET} image sizes "
+            f"of the image centre, got cx={K[bad[0], 0, 2]:.6g}, cy={K[bad[0], 1, 2]:.6g} for {width}x{height}"
+        )
     R = world_from_cam[:, :3, :3]
     err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
     det = np.linalg.det(R)

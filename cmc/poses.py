@@ -25,16 +25,20 @@ Pinned: pycolmap 4.2.1 (its Python API changes between releases).
 from __future__ import annotations
 
 import argparse
+import ctypes
 import hashlib
 import json
+import os
 import re
 import shutil
+import signal
 import struct
+import sys
 import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -274,9 +278,34 @@ def triangulate_pair(
 # --- Shared plumbing -------------------------------------------------------------------------
 
 
-def _pycolmap():
+_IMPORT_LOCK = threading.Lock()
+
+
+@contextmanager
+def _keep_sigterm() -> Iterator[None]:
+    """Restore the process's SIGTERM handler afterwards. Importing pycolmap installs glog's
+    failure handler for SIGTERM, which aborts the process instead of the graceful stop the
+    server or worker set up (checkpoint, then exit). Saved and restored with sigaction itself,
+    as opaque bytes: Python's ``signal`` module only works on the main thread, and jobs run
+    pose estimation on others."""
+    if os.name != "posix":  # pragma: no cover - the project runs on Linux
+        yield
+        return
+    libc = ctypes.CDLL(None, use_errno=True)
+    saved = ctypes.create_string_buffer(256)  # larger than any libc's struct sigaction
+    if libc.sigaction(int(signal.SIGTERM), None, saved) != 0:
+        raise OSError(ctypes.get_errno(), "sigaction")
     try:
-        import pycolmap
+        yield
+    finally:
+        libc.sigaction(int(signal.SIGTERM), saved, None)
+
+
+def _pycolmap():
+    first = "pycolmap" not in sys.modules  # later imports run no module code
+    try:
+        with _IMPORT_LOCK, _keep_sigterm() if first else nullcontext():
+            import pycolmap
     except ImportError:  # pragma: no cover - depends on the environment
         raise PoseEstimationError("pose estimation needs the pycolmap package (pip install pycolmap==4.2.1)") from None
     if not pycolmap.__version__.startswith("4."):

@@ -25,6 +25,8 @@ from service.jobs import JobQueue
 from service.metrics import Metrics
 from service.renders import (
     BakedCache,
+    Rendered,
+    RenderQueue,
     depth_scale,
     encode_depth_npy,
     encode_depth_png16,
@@ -62,6 +64,7 @@ class Services:
     keys: KeyRing
     renders: BakedCache
     metrics: Metrics
+    render_queue: RenderQueue
 
 
 def _services(request: Request) -> Services:
@@ -90,6 +93,10 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 ERRORS_READY: dict[int | str, dict[str, Any]] = {
     **ERRORS,
     409: {"model": ErrorBody, "description": "the scene is not ready yet (code scene_not_ready)"},
+}
+ERRORS_RENDER: dict[int | str, dict[str, Any]] = {
+    **ERRORS_READY,
+    503: {"model": ErrorBody, "description": "all render slots taken (code renderer_busy): retry after Retry-After"},
 }
 
 router = APIRouter()
@@ -393,14 +400,14 @@ def get_camera_path(
 @router.post(
     "/v1/scenes/{scene_id}/render",
     responses={
-        **ERRORS_READY,
+        **ERRORS_RENDER,
         406: {"model": ErrorBody, "description": "Accept names neither image/png nor image/jpeg"},
         200: {"content": {"image/png": {}, "image/jpeg": {}}, "description": "the rendered view"},
     },
     response_class=Response,
     summary="Render the scene from any camera (PNG or JPEG by Accept)",
 )
-def render_view(
+async def render_view(
     scene_id: SceneId,
     camera: RenderCamera,
     svc: Svc,
@@ -410,16 +417,16 @@ def render_view(
     media = negotiate(accept, ["image/png", "image/jpeg"])
     if media is None:
         raise APIError(406, "not_acceptable", "this endpoint returns image/png or image/jpeg")
-    _ready_scene(svc, scene_id, owner)
+    await run_in_threadpool(_ready_scene, svc, scene_id, owner)
     K, pose, w, h = _camera(camera, svc.settings)
-    out = svc.renders.render(scene_id, K, pose, w, h)
-    return Response(encode_image(out.rgb, media), media_type=media, headers={"Cache-Control": "no-store"})
+    body = await svc.render_queue.run(lambda: encode_image(svc.renders.render(scene_id, K, pose, w, h).rgb, media))
+    return Response(body, media_type=media, headers={"Cache-Control": "no-store"})
 
 
 @router.post(
     "/v1/scenes/{scene_id}/depth",
     responses={
-        **ERRORS_READY,
+        **ERRORS_RENDER,
         406: {"model": ErrorBody, "description": "Accept names neither image/png nor application/x-npy"},
         200: {
             "content": {"image/png": {}, "application/x-npy": {}},
@@ -430,7 +437,7 @@ def render_view(
     response_class=Response,
     summary="Depth map (target-camera z, scene units) for any camera",
 )
-def render_depth(
+async def render_depth(
     scene_id: SceneId,
     camera: RenderCamera,
     svc: Svc,
@@ -441,18 +448,22 @@ def render_depth(
     media = "image/png" if preview else negotiate(accept, ["image/png", "application/x-npy"])
     if media is None:
         raise APIError(406, "not_acceptable", "this endpoint returns image/png or application/x-npy")
-    _ready_scene(svc, scene_id, owner)
+    await run_in_threadpool(_ready_scene, svc, scene_id, owner)
     K, pose, w, h = _camera(camera, svc.settings)
-    out = svc.renders.render(scene_id, K, pose, w, h)
+
+    def draw() -> tuple[Rendered, bytes]:
+        out = svc.renders.render(scene_id, K, pose, w, h)
+        if preview:
+            return out, encode_depth_preview(out.depth, out.near, out.far)
+        if media == "image/png":
+            return out, encode_depth_png16(out.depth, out.far)
+        return out, encode_depth_npy(out.depth)
+
+    out, body = await svc.render_queue.run(draw)
     headers = {"Cache-Control": "no-store", "Depth-Units": "scene"}
     headers.update({"Depth-Near": f"{out.near:.9g}", "Depth-Far": f"{out.far:.9g}"})
-    if preview:
-        body = encode_depth_preview(out.depth, out.near, out.far)
-    elif media == "image/png":
-        body = encode_depth_png16(out.depth, out.far)
+    if media == "image/png" and not preview:
         headers["Depth-Scale"] = f"{depth_scale(out.far):.9g}"
-    else:
-        body = encode_depth_npy(out.depth)
     return Response(body, media_type=media, headers=headers)
 
 
@@ -538,7 +549,7 @@ def viewer(scene_id: SceneId) -> Response:
 
 
 @router.get("/healthz", response_model=Health, summary="The process is alive")
-def healthz() -> Health:
+async def healthz() -> Health:  # async: answers on the event loop, needing no thread
     return Health(status="ok")
 
 

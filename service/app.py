@@ -17,7 +17,8 @@ from service.auth import KeyRing
 from service.errors import install_error_handlers
 from service.jobs import CeleryJobQueue, JobQueue
 from service.metrics import Metrics, MetricsMiddleware
-from service.renders import BakedCache
+from service.middleware import BodyGuard, LocalOnly
+from service.renders import BakedCache, RenderQueue
 from service.settings import Settings, load_settings
 from service.storage import LocalStorage
 from service.store import SceneStore
@@ -51,6 +52,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
             runner = EmbeddedRunner(store, storage, settings)
             queue = runner
     metrics = Metrics(store, queue)
+    render_queue = RenderQueue(settings.render_concurrency, settings.render_queue)
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
@@ -63,12 +65,16 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
         finally:
             if runner is not None:
                 runner.stop()
+            render_queue.close()
             store.close()
 
     app = FastAPI(title="CMC reconstruction service", version="1.0.0", description=DESCRIPTION, lifespan=lifespan)
-    renders = BakedCache(storage, settings.render_cache_bytes, settings.render_concurrency)
-    app.state.services = Services(settings, store, storage, queue, keys, renders, metrics)
+    renders = BakedCache(storage, settings.render_cache_bytes)
+    app.state.services = Services(settings, store, storage, queue, keys, renders, metrics, render_queue)
     install_error_handlers(app)
+    app.add_middleware(BodyGuard, keys=keys, max_json_bytes=settings.max_json_bytes, streamed={("POST", "/v1/scenes")})
+    if keys.open:
+        app.add_middleware(LocalOnly, extra_hosts=set(settings.allowed_hosts.split(",")))
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.include_router(router)
     return app

@@ -2,7 +2,8 @@
 
 Keys come from ``CMC_API_KEYS`` (comma-separated; hashed when loaded) and ``CMC_API_KEYS_FILE``
 (one SHA-256 hex digest a line, ``#`` comments; ``cmc serve --new-key FILE`` appends one). With
-no key configured the API is open, and ``cmc serve`` then only listens on localhost. A scene
+no key configured the API is open: ``cmc serve`` then only listens on localhost, and
+:class:`service.middleware.LocalOnly` answers only local host names and same-site pages. A scene
 belongs to the key that made it: its owner id is the key digest's first 16 hex digits (``local``
 in open mode), and other keys get 404 for it.
 """

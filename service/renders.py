@@ -2,8 +2,10 @@
 
 Rendering uses :class:`cmc.baking.BakedScene` (the baked atlases alone, no trained model).
 That needs torch, imported on the first render only; the rest of the API does not load it.
-At most ``render_concurrency`` renders run at once (each uses all of torch's threads); other
-requests wait their turn instead of thrashing the CPU.
+Renders run on their own threads (:class:`RenderQueue`), never on the thread pool the other
+routes share, so probes and status polls answer whatever the render load: at most
+``render_concurrency`` at once (each uses all of torch's threads), ``render_queue`` more
+waiting their turn, and beyond that 503 with ``Retry-After``.
 
 Depth encodings (``POST /v1/scenes/{id}/depth``, by ``Accept``):
 
@@ -18,16 +20,22 @@ Scene units are those of the cameras: arbitrary (SfM) for estimated poses, metre
 
 from __future__ import annotations
 
+import asyncio
 import io
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from PIL import Image
 
+from service.errors import APIError
 from service.storage import Storage
+
+T = TypeVar("T")
 
 
 @dataclass
@@ -42,12 +50,11 @@ class BakedCache:
     """LRU cache of loaded baked scenes, keyed by scene id, bounded by their bytes in memory
     (:attr:`cmc.baking.BakedScene.nbytes`); the scene just loaded always stays."""
 
-    def __init__(self, storage: Storage, capacity_bytes: int, concurrency: int):
+    def __init__(self, storage: Storage, capacity_bytes: int):
         self.storage, self.capacity_bytes = storage, capacity_bytes
         self._scenes: OrderedDict[str, Any] = OrderedDict()
         self._lock = threading.Lock()
         self._load_locks: dict[str, threading.Lock] = {}
-        self._slots = threading.Semaphore(concurrency)
 
     def get(self, scene_id: str) -> Any:
         from cmc.baking import BakedScene
@@ -83,11 +90,41 @@ class BakedCache:
         import torch
 
         baked = self.get(scene_id)
-        with self._slots, torch.inference_mode():
+        with torch.inference_mode():
             out = baked.render(K, world_from_cam, width, height)
             rgb = out.rgb.float().cpu().numpy()
             depth = out.depth.float().cpu().numpy()
         return Rendered(rgb, depth, baked.near, baked.far)
+
+
+class RenderQueue:
+    """``concurrency`` render threads of their own and at most ``waiting`` requests queued for
+    them; a request beyond that is refused at once (503, ``Retry-After``)."""
+
+    RETRY_AFTER_S = 1
+
+    def __init__(self, concurrency: int, waiting: int):
+        self._pool = ThreadPoolExecutor(concurrency, thread_name_prefix="cmc-render")
+        self._capacity = concurrency + waiting
+        self._admitted = 0  # running or waiting; a request that went away still counts until its render ends
+        self._lock = threading.Lock()
+
+    async def run(self, fn: Callable[[], T]) -> T:
+        with self._lock:
+            if self._admitted >= self._capacity:
+                retry = {"Retry-After": str(self.RETRY_AFTER_S)}
+                raise APIError(503, "renderer_busy", "every render slot is taken; retry shortly", headers=retry)
+            self._admitted += 1
+        future = self._pool.submit(fn)
+        future.add_done_callback(self._release)
+        return await asyncio.wrap_future(future)  # cancelled with the request if it has not started
+
+    def _release(self, _: Future) -> None:
+        with self._lock:
+            self._admitted -= 1
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=False, cancel_futures=True)
 
 
 def encode_image(rgb: np.ndarray, media_type: str) -> bytes:

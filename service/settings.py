@@ -32,6 +32,9 @@ class Settings(BaseSettings):
     # -- auth -------------------------------------------------------------------------------
     api_keys: str = Field("", description="comma-separated API keys (hashed on load, never stored)")
     api_keys_file: Path | None = Field(None, description="file of SHA-256 hex digests of API keys, one a line")
+    allowed_hosts: str = Field(
+        "", description="without API keys: host names accepted besides localhost, 127.0.0.1, [::1] (comma-separated)"
+    )
 
     # -- upload limits ----------------------------------------------------------------------
     min_images: int = Field(3, ge=2, le=20)
@@ -39,6 +42,7 @@ class Settings(BaseSettings):
     max_image_bytes: int = Field(25 * MB, ge=1024, description="bytes per uploaded image")
     max_image_pixels: int = Field(60_000_000, ge=1, description="pixels per uploaded image")
     max_cameras_bytes: int = Field(1 * MB, ge=1024, description="bytes of the optional cameras / options parts")
+    max_json_bytes: int = Field(64 * 1024, ge=1024, description="bytes of any other request body (a render camera)")
 
     # -- jobs -------------------------------------------------------------------------------
     device: str = Field("auto", description="torch device for training: auto, cpu, cuda, cuda:N")
@@ -61,6 +65,7 @@ class Settings(BaseSettings):
         "planes); the least recently used are dropped beyond it, never the one just loaded",
     )
     render_concurrency: int = Field(2, ge=1, description="renders computed at once (others wait)")
+    render_queue: int = Field(8, ge=0, description="renders waiting for one of those; more get 503 + Retry-After")
     max_render_pixels: int = Field(4_000_000, ge=1, description="largest render (width x height)")
 
     # -- embedded mode ----------------------------------------------------------------------

@@ -239,6 +239,8 @@ def parse_cameras(upload: Upload, stored_names: list[str]) -> dict | None:
         order = match_frames(cf.file_paths, aliases)
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise APIError(422, "invalid_cameras", f"the 'cameras' part is not valid JSON: {e}") from None
+    except RecursionError:  # json refuses documents nested deeper than Python's recursion limit
+        raise APIError(422, "invalid_cameras", "the 'cameras' part is nested too deeply") from None
     except CameraError as e:
         raise APIError(422, "invalid_cameras", str(e)) from None
     for k, f in enumerate(order):

@@ -334,8 +334,13 @@ def _pose_with(row: int, col: int, value: float) -> np.ndarray:
         (intrinsics(np.nan, 50, 32, 24), np.eye(4), r"intrinsics .*NaN"),
         (intrinsics(50, 50, 32, 24), _pose_with(0, 0, 2.0), "not a proper rotation"),
         (intrinsics(50, 50, 32, 24), np.diag([1.0, 1.0, -1.0, 1.0]), "not a proper rotation"),  # reflection
-        (intrinsics(-50, 50, 32, 24), np.eye(4), "focal lengths must be positive"),
-        (intrinsics(50, 0, 32, 24), np.eye(4), "focal lengths must be positive"),
+        (intrinsics(-50, 50, 32, 24), np.eye(4), r"focal lengths of camera\(s\) \[0\] must be"),
+        (intrinsics(50, 0, 32, 24), np.eye(4), "focal lengths .* must be"),
+        (intrinsics(1e-300, 50, 32, 24), np.eye(4), "focal lengths .* must be"),  # K underflows to singular
+        (intrinsics(50, 1e300, 32, 24), np.eye(4), "focal lengths .* must be"),
+        (intrinsics(2, 50, 32, 24), np.eye(4), "focal lengths .* must be"),  # a 172 degree field of view
+        (intrinsics(50, 50, 1e300, 24), np.eye(4), "principal point"),
+        (intrinsics(50, 50, 32, -1000), np.eye(4), "principal point"),
         (intrinsics(50, 50, 32, 24), _pose_with(3, 0, 0.5), r"last row \[0, 0, 0, 1\]"),
         (np.eye(4), np.eye(4), r"\[N, 3, 3\]"),
         (np.stack([intrinsics(50, 50, 32, 24)] * 2), np.eye(4), "2 intrinsics but 1 poses"),
@@ -372,7 +377,7 @@ def _frame(**kw) -> dict:
             _file(frames=[_frame(transform_matrix=np.diag([1.0, 3.0, 1.0, 1.0]).tolist())]),
             "not a proper rotation",
         ),
-        (_file(fl_x=-50.0), "focal lengths must be positive"),
+        (_file(fl_x=-50.0), "focal lengths .* must be"),
         (_file(fl_x="fifty"), r"'fl_x' must be a number"),
         (_file(fl_x=float("nan")), r"'fl_x' is not finite"),
         (_file(frames=[_frame(), _frame(w=32)]), r"frame 1: size 32x48 differs from 64x48"),

@@ -436,7 +436,7 @@ def _edit(data: dict, how: str) -> dict:
     "how, error, message",
     [
         ("rotation", CameraError, "not a proper rotation"),
-        ("focal", CameraError, "focal lengths must be positive"),
+        ("focal", CameraError, "focal lengths .* must be"),
         ("names", CameraError, "no frame in the cameras file is for photo IMG_0002.png"),
         ("count", CameraError, "2 frames for 3 photos"),
         ("size", CameraError, r"for 240x320 images but the photos are 320x240 \(rotated"),

@@ -9,11 +9,22 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
 import time
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
+import uvicorn
 from fastapi.testclient import TestClient
 from helpers import render_body, synthetic_upload
 from PIL import Image
@@ -52,6 +63,7 @@ class RecordingQueue:
 
 def settings_for(tmp: Path, **overrides):
     base = dict(data_dir=tmp, mode="embedded", api_keys="", api_keys_file=None, heartbeat_seconds=0.2)
+    base["allowed_hosts"] = "testserver"  # the Host of TestClient's requests (open mode accepts only local ones)
     return load_settings(**{**base, **overrides})
 
 
@@ -63,6 +75,50 @@ def wait_for(client: TestClient, scene_id: str, statuses: tuple[str, ...], timeo
             return body
         time.sleep(0.2)
     raise AssertionError(f"scene {scene_id} not {statuses} after {timeout} s: {body}")
+
+
+@contextmanager
+def live_server(app) -> Iterator[int]:
+    """``app`` served by uvicorn on a free localhost port (yielded), in a thread of this process."""
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    t0 = time.time()
+    while not server.started:
+        assert thread.is_alive() and time.time() - t0 < 30, "uvicorn did not start"
+        time.sleep(0.02)
+    try:
+        yield server.servers[0].sockets[0].getsockname()[1]
+    finally:
+        server.should_exit = True
+        thread.join(10)
+
+
+def raw_exchange(port: int, head: str, body_chunks: list[bytes], timeout: float = 3.0) -> tuple[int, dict, float]:
+    """Send a request head and some body bytes on a socket, never the rest, and read the answer:
+    (status, JSON body, seconds to answer). Fails when the server waits for the rest instead."""
+    with socket.create_connection(("127.0.0.1", port), timeout=timeout) as sock:
+        t0 = time.perf_counter()
+        sock.sendall(head.replace("\n", "\r\n").encode() + b"\r\n")
+        for chunk in body_chunks:
+            sock.sendall(chunk)
+        data = b""
+        while b"\r\n\r\n" not in data or len(data.split(b"\r\n\r\n", 1)[1]) < _length(data):
+            more = sock.recv(65536)
+            if not more:
+                break
+            data += more
+        elapsed = time.perf_counter() - t0
+    head_bytes, _, payload = data.partition(b"\r\n\r\n")
+    return int(head_bytes.split()[1]), json.loads(payload), elapsed
+
+
+def _length(data: bytes) -> int:
+    for line in data.split(b"\r\n\r\n", 1)[0].split(b"\r\n")[1:]:
+        name, _, value = line.partition(b":")
+        if name.strip().lower() == b"content-length":
+            return int(value)
+    return 0
 
 
 def png(a: np.ndarray) -> bytes:
@@ -206,6 +262,9 @@ def test_render_content_negotiation_and_bad_cameras(ready) -> None:
     skew = {**body, "transform_matrix": (np.array(body["transform_matrix"]) * [[1, 2, 1, 1]] * 1).tolist()}
     r = client.post(f"/v1/scenes/{sid}/render", json=skew)
     assert r.status_code == 422 and r.json()["error"]["code"] == "invalid_camera"
+    for route in ("render", "depth"):  # intrinsics that underflow to a singular matrix
+        tiny = client.post(f"/v1/scenes/{sid}/{route}", json={**body, "fl_x": 1e-300})
+        assert tiny.status_code == 422 and tiny.json()["error"]["code"] == "invalid_camera", tiny.text
     huge = client.post(f"/v1/scenes/{sid}/render", json={**body, "w": 8000, "h": 8000})
     assert huge.status_code == 422 and huge.json()["error"]["code"] == "render_too_large"
     missing = client.post(f"/v1/scenes/{sid}/render", json={"fl_x": 10})
@@ -276,6 +335,55 @@ def test_operations_endpoints(ready) -> None:
     assert 'cmc_http_requests_total{method="GET",route="/v1/scenes/{scene_id}",status="200"}' in text
 
 
+def _baked_ready_scene(app) -> tuple[str, dict]:
+    """A ready scene whose baked MPI comes from an untrained model (no job ran), and a camera."""
+    from cmc.baking import bake
+    from cmc.config import preset_config
+    from cmc.datasets import synthetic_scene
+    from cmc.training import Trainer
+
+    svc = app.state.services
+    rec, _ = svc.store.create("local", {}, ["a.png", "b.png"], ["00.png", "01.png"], False)
+    assert svc.store.claim(rec.id, "poses", "test", 60) is not None
+    assert svc.store.advance(rec.id, "test", "done", "ready")
+    scene = synthetic_scene(num_views=2, width=32, height=24)
+    bake(
+        Trainer(scene, preset_config("fast", steps=1, rays_per_view=64, unseen_rays=64)).model,
+        svc.storage.path(f"{rec.id}/baked"),
+    )
+    return rec.id, render_body(scene.cameras)
+
+
+def test_renders_never_hold_up_probes_and_status(api, monkeypatch) -> None:
+    from cmc.baking import BakedScene
+
+    app = create_app(settings_for(api.storage.parent, render_concurrency=2, render_queue=4), queue=RecordingQueue())
+    sid, camera = _baked_ready_scene(app)
+    drawn = BakedScene.render
+
+    def slow_render(self, *args, **kwargs):
+        time.sleep(0.5)
+        return drawn(self, *args, **kwargs)
+
+    monkeypatch.setattr(BakedScene, "render", slow_render)
+    with live_server(app) as port, httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=60) as client:
+        assert client.post(f"/v1/scenes/{sid}/render", json=camera).status_code == 200  # loads the scene
+        with ThreadPoolExecutor(48) as pool:
+            renders = [pool.submit(client.post, f"/v1/scenes/{sid}/render", json=camera) for _ in range(48)]
+            time.sleep(0.3)  # all of them arrived
+            for path in ("/healthz", "/readyz", f"/v1/scenes/{sid}"):
+                t0 = time.perf_counter()
+                assert client.get(path).status_code == 200
+                assert time.perf_counter() - t0 < 0.5, path
+            answers = [r.result() for r in renders]
+    drawn_ok = [r for r in answers if r.status_code == 200]
+    busy = [r for r in answers if r.status_code == 503]
+    assert len(drawn_ok) + len(busy) == 48 and 6 <= len(drawn_ok) < 48  # 2 drawing + 4 waiting at a time
+    assert all(r.content[:4] == b"\x89PNG" for r in drawn_ok)
+    assert {r.json()["error"]["code"] for r in busy} == {"renderer_busy"}
+    assert {r.headers["retry-after"] for r in busy} == {"1"}
+
+
 # -- uploads, limits, auth: nothing trains ------------------------------------------------------------
 
 
@@ -334,6 +442,7 @@ def _replace(parts: list, index: int, name: str, data: bytes) -> list:
         ("steps", 422, "invalid_options"),
         ("cameras_json", 422, "invalid_cameras"),
         ("cameras_names", 422, "invalid_cameras"),
+        ("cameras_deep", 422, "invalid_cameras"),
         ("request", 413, "payload_too_large"),
         ("not_multipart", 415, "unsupported_media_type"),
     ],
@@ -370,6 +479,8 @@ def test_bad_uploads_are_refused_and_nothing_is_kept(api, case: str, status: int
         cams = json.loads(rest[0][1][1])
         cams["frames"][2]["file_path"] = "someone_else.png"
         parts = images + [("cameras", ("c.json", json.dumps(cams).encode(), "application/json"))] + rest[1:]
+    elif case == "cameras_deep":  # nested too deeply for Python's JSON parser
+        parts = images + [("cameras", ("c.json", b"[" * 100_000, "application/json"))] + rest[1:]
     elif case == "request":  # every part within its limit, the whole over the request limit
         overrides.update(max_image_bytes=40_000, max_cameras_bytes=20_000)
         parts = parts + [("padding", (None, b"x" * 200_000))]
@@ -423,6 +534,53 @@ def test_api_keys_scope_scenes_to_their_owner(api, tmp_path: Path) -> None:
     assert [s["id"] for s in client.get("/v1/scenes", headers=a).json()["items"]] == [sid]
     assert client.get("/v1/scenes", headers=b).json()["items"] == []
     assert client.get("/healthz").status_code == 200  # probes need no key
+
+
+def test_request_bodies_are_refused_before_they_are_read(api) -> None:
+    app = create_app(settings_for(api.storage.parent, api_keys="key-a", max_json_bytes=4096), queue=RecordingQueue())
+    render = "POST /v1/scenes/0123456789abcdef0123456789abcdef/render HTTP/1.1\nHost: 127.0.0.1\n"
+    json_head = render + "Content-Type: application/json\n"
+    with live_server(app) as port:
+        # Content-Length announces 100 MB; 2 bytes are sent, and the answer comes without the rest
+        status, body, seconds = raw_exchange(port, json_head + "Content-Length: 100000000\n", [b"{}"])
+        assert status == 401 and body["error"]["code"] == "unauthorized" and seconds < 1
+        status, _, _ = raw_exchange(port, render + "Transfer-Encoding: chunked\n", [b"2\r\n{}\r\n"])
+        assert status == 401  # a body of unannounced length, too
+        keyed = json_head + "Authorization: Bearer key-a\n"
+        status, body, seconds = raw_exchange(port, keyed + "Content-Length: 100000000\n", [b"{}"])
+        assert status == 413 and body["error"]["code"] == "payload_too_large" and seconds < 1
+        # streamed without a length: refused once the bytes cross the limit, not at the end
+        chunks = [b"400\r\n" + b" " * 1024 + b"\r\n"] * 5
+        status, body, seconds = raw_exchange(port, keyed + "Transfer-Encoding: chunked\n", chunks)
+        assert status == 413 and body["error"]["code"] == "payload_too_large" and seconds < 1
+    # within the limit, a keyed body goes on to the route (a scene that does not exist)
+    camera = {"transform_matrix": np.eye(4).tolist(), "fl_x": 50, "w": 8, "h": 8}
+    r = TestClient(app).post(render.split()[1], json=camera, headers={"Authorization": "Bearer key-a"})
+    assert r.status_code == 404 and r.json()["error"]["code"] == "not_found"
+
+
+def test_open_mode_answers_only_local_hosts_and_pages(api) -> None:
+    client = api(allowed_hosts="mybox.lan")
+    for host in ("127.0.0.1:8000", "localhost", "LOCALHOST:1", "[::1]:8000", "mybox.lan:8000"):
+        assert client.get("/healthz", headers={"Host": host}).status_code == 200, host
+    for host in ("attacker.example", "localhost.attacker.example:8000", "127.0.0.1.nip.io", "[::1"):
+        r = client.get("/v1/scenes", headers={"Host": host})  # DNS rebinding: another name, this address
+        assert r.status_code == 421 and r.json()["error"]["code"] == "host_not_allowed", host
+    parts, _, _ = synthetic_upload()
+    local = {"Host": "127.0.0.1:8000"}
+    for page in ({"Origin": "https://attacker.example"}, {"Origin": "null"}, {"Sec-Fetch-Site": "cross-site"}):
+        r = client.post("/v1/scenes", files=parts, headers={**local, **page})  # a form on another site
+        assert r.status_code == 403 and r.json()["error"]["code"] == "cross_site_request", page
+    assert api.queue.sent == [] and stored_scenes(api.storage) == []
+    same_site = {"Origin": "http://localhost:8000", "Sec-Fetch-Site": "same-site"}
+    sid = client.post("/v1/scenes", files=parts, headers={**local, **same_site}).json()["id"]
+    assert client.post("/v1/scenes", files=parts, headers=local).status_code == 202  # curl, scripts: no Origin
+    gone = client.delete(f"/v1/scenes/{sid}", headers={**local, "Origin": "http://attacker.example:8000"})
+    assert gone.status_code == 403
+    # with API keys, neither Host nor Origin matters (the key does)
+    keyed = api(api_keys="key-a", allowed_hosts="")
+    key = {"Authorization": "Bearer key-a", "Host": "api.example.com", "Origin": "https://app.example.com"}
+    assert keyed.post("/v1/scenes", files=parts, headers=key).status_code == 202
 
 
 def test_list_is_paginated_newest_first(api) -> None:
@@ -537,6 +695,73 @@ def test_unfinished_job_resumes_after_a_restart(tmp_path: Path) -> None:
         rec = client.app.state.services.store.get(sid)
     assert rec.stats["train"]["resumed_from_step"] >= 10
     assert rec.attempts == 0  # a clean stop is not a lost worker
+
+
+class ServeProcess:
+    """``cmc serve`` (embedded runner) as a child process on a free port."""
+
+    def __init__(self, data_dir: Path):
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            self.url = f"http://127.0.0.1:{sock.getsockname()[1]}"
+        root = Path(__file__).resolve().parents[1]
+        env = {**os.environ, "PYTHONPATH": str(root), "CMC_DEVICE": "cpu", "CMC_HEARTBEAT_SECONDS": "0.2"}
+        args = [sys.executable, "-m", "cmc.cli", "serve", "--log-level", "warning", "--data-dir", str(data_dir)]
+        self.log = data_dir.parent / f"{data_dir.name}.log"
+        with open(self.log, "ab") as log:
+            self.proc = subprocess.Popen([*args, "--port", self.url.rsplit(":", 1)[1]], env=env, stdout=log, stderr=log)
+        self.wait(lambda: httpx.get(f"{self.url}/healthz").status_code == 200, "start")
+
+    def wait(self, ready, what: str, timeout: float = 240):
+        t0 = time.time()
+        while time.time() - t0 < timeout:
+            assert self.proc.poll() is None, f"cmc serve exited:\n{self.log.read_text()[-3000:]}"
+            try:
+                if result := ready():
+                    return result
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        raise AssertionError(f"cmc serve: no {what} after {timeout} s:\n{self.log.read_text()[-3000:]}")
+
+    def status(self, scene_id: str) -> dict:
+        return httpx.get(f"{self.url}/v1/scenes/{scene_id}").json()
+
+    def terminate(self) -> None:
+        self.proc.send_signal(signal.SIGTERM)
+        self.proc.wait(60)
+
+
+def test_sigterm_after_pose_estimation_checkpoints_and_resumes(tmp_path: Path) -> None:
+    """SfM loads pycolmap, whose logging library takes over SIGTERM when imported; a later
+    stop must still checkpoint the training job (the preset's 250-step period is never reached)."""
+    import torch
+
+    from service.store import SceneStore
+
+    data = tmp_path / "data"
+    server = ServeProcess(data)
+    try:
+        grey = [("images", (f"IMG_{i}.png", png(np.full((72, 96, 3), 0.4)), "image/png")) for i in range(3)]
+        sfm = httpx.post(f"{server.url}/v1/scenes", files=grey).json()["id"]  # no cameras: runs SfM
+        assert server.wait(lambda: server.status(sfm)["status"] == "failed", "pose estimation")
+        parts, _, _ = synthetic_upload(steps=5000)
+        sid = httpx.post(f"{server.url}/v1/scenes", files=parts).json()["id"]
+        server.wait(lambda: server.status(sid)["status"] == "training" and server.status(sid)["progress"] > 0, "steps")
+    finally:
+        server.terminate()  # uvicorn stops gracefully, then exits by re-raising the signal
+    ckpt = data / "storage" / sid / "checkpoint.pt"
+    assert ckpt.exists(), f"no checkpoint at shutdown:\n{server.log.read_text()[-3000:]}"
+    step = torch.load(ckpt, weights_only=False)["step"]
+    assert 0 < step < 250
+    server = ServeProcess(data)
+    try:
+        store = SceneStore(f"sqlite:///{data.resolve() / 'cmc.db'}")
+        resumed = server.wait(lambda: store.get(sid).stats.get("train", {}).get("resumed_from_step"), "resume")
+        store.close()
+    finally:
+        server.terminate()
+    assert resumed == step
 
 
 def test_serve_refuses_open_network_without_keys_and_new_api_key(tmp_path: Path, capsys, monkeypatch) -> None:

@@ -110,11 +110,11 @@ def test_render_cache_is_bounded_by_bytes(tmp_path):
     for name in (a, b, c):
         bake(model, tmp_path / name / "baked")
     size = BakedScene.load(tmp_path / a / "baked").nbytes
-    cache = BakedCache(LocalStorage(tmp_path), capacity_bytes=2 * size, concurrency=1)
+    cache = BakedCache(LocalStorage(tmp_path), capacity_bytes=2 * size)
     for name in (a, b, a, c):  # b is now the least recently used
         cache.get(name)
     assert list(cache._scenes) == [a, c] and cache.nbytes == 2 * size
-    small = BakedCache(LocalStorage(tmp_path), capacity_bytes=size // 2, concurrency=1)
+    small = BakedCache(LocalStorage(tmp_path), capacity_bytes=size // 2)
     small.get(a)
     assert list(small._scenes) == [a]
     out = small.render(a, scene.cameras.K[0], scene.cameras.world_from_cam[0], 32, 24)
