@@ -73,6 +73,7 @@ class CMCModel(nn.Module):
                         cfg.pyramid.stereo_temperature,
                         occlusion_aware=cfg.pyramid.stereo_occlusion_aware,
                         edge_sigma=cfg.pyramid.stereo_edge_sigma or None,
+                        extend_border=cfg.pyramid.stereo_extend_border,
                     )
                     init_alpha = alpha_from_weights(probs)
                 rgb = padded_reference(scene.images[i], fr)

@@ -45,6 +45,7 @@ def plane_sweep_weights(
     window: int = 5,
     occlusion_aware: bool = False,
     edge_sigma: float | None = None,
+    extend_border: bool = False,
 ) -> torch.Tensor:
     """Per-texel probability that each plane of MPI ``ref`` holds the visible surface.
 
@@ -55,6 +56,12 @@ def plane_sweep_weights(
     a background do not leak across an object's outline (foreground fattening). The views' costs
     are averaged, or with ``occlusion_aware`` the lowest is taken (a surface hidden from one
     view by an occluder still matches in another). Texels no other view sees get a flat cost.
+
+    Texels of the margin (outside the reference image) hold no reference colour, only the
+    edge-extended photo, so their costs match streaks by chance (near-plane smears wherever a
+    target looks past an input's border). With ``extend_border`` they take the probabilities of
+    the nearest texel inside the image instead: the border's geometry continues outwards, as its
+    colour does.
 
     Args:
         frames: the MPIFrames of all views; images: [N, 3, H, W] in [0, 1].
@@ -90,7 +97,22 @@ def plane_sweep_weights(
     else:
         c = (cost * seen_t).sum(0) / seen_t.sum(0).clamp_min(1)
     c = torch.where(seen_t.any(0), c, torch.full_like(c, 0.5))
-    return torch.softmax(-c / temperature, dim=0)
+    probs = torch.softmax(-c / temperature, dim=0)
+    if extend_border:
+        uv = uv_ref.reshape(height, width, 2)
+        rows = _nearest_inside(uv[:, 0, 1], fr.height)  # texel rows whose v lies in [0, H]
+        cols = _nearest_inside(uv[0, :, 0], fr.width)
+        probs = probs[:, rows][:, :, cols]
+    return probs
+
+
+def _nearest_inside(coords: torch.Tensor, size: int) -> torch.Tensor:
+    """For texel centre coordinates [n] (pixels, increasing), the index of the nearest texel whose
+    centre lies inside [0, size] (itself when inside)."""
+    inside = ((coords >= 0) & (coords <= size)).nonzero()[:, 0]
+    if len(inside) == 0:
+        return torch.arange(len(coords), device=coords.device)
+    return torch.arange(len(coords), device=coords.device).clamp(int(inside[0]), int(inside[-1]))
 
 
 def _window_mean(guide: torch.Tensor, window: int, edge_sigma: float | None):

@@ -108,3 +108,28 @@ def test_edge_aware_aggregation_reduces_foreground_fattening():
     uniform, edge_aware = _fattening(None), _fattening(0.1)
     assert uniform > 0.4, uniform  # the failure exists in this scene
     assert edge_aware < 0.8 * uniform, (edge_aware, uniform)
+
+
+def test_margin_texels_take_the_border_geometry():
+    """The planes extend past the reference image (margin 1.4), where the reference holds only its
+    edge-extended photo: matched against the other views that gives chance planes. With
+    ``extend_border`` every margin texel takes the plane of the nearest texel inside the image,
+    here the wall's."""
+    cams = synthetic_cameras(3, width=96, height=72, baseline=0.6)
+    images, depth = render_layers((Layer(4.0, (-1e3, 1e3, -1e3, 1e3), 5),), cams)
+    near, far, D, m = 2.0, 8.0, 24, 1.4
+    frames = [MPIFrame.create(cams.K[i], cams.world_from_cam[i], near, far, D, 96, 72, m) for i in range(3)]
+    imgs = torch.as_tensor(images).permute(0, 3, 1, 2)
+    h, w = frames[1].extent
+    true_plane = int(np.abs(plane_depths(near, far, D) - depth[1, 36, 48]).argmin())
+    margin = torch.ones(h, w, dtype=torch.bool)
+    margin[round(h * 0.2 / m) : h - round(h * 0.2 / m), round(w * 0.2 / m) : w - round(w * 0.2 / m)] = False
+
+    def on_wall(extend: bool) -> tuple[float, float]:
+        p = plane_sweep_weights(frames, imgs, 1, h, w, temperature=0.02, extend_border=extend)
+        good = (p.argmax(0) - true_plane).abs() <= 1
+        return float(good[margin].float().mean()), float(good[~margin].float().mean())
+
+    plain, extended = on_wall(False), on_wall(True)
+    assert plain[0] < 0.6, plain  # chance planes in the margin
+    assert extended[0] > 0.9 and extended[1] >= plain[1], (plain, extended)
