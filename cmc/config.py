@@ -80,7 +80,8 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       6 x 256 LeakyReLU), 80 planes, Adam 5e-3 -> 1e-4, 1024-ray batches, reconstruction only for
       the first 30 %, then lambda_ac = lambda_dc = 1.
     * ``fast``: explicit multi-resolution plane textures (see cmc.fields.PyramidPlaneField),
-      alpha initialised by an occlusion-aware, edge-aware plane sweep, 48 planes, the paper's
+      alpha initialised by an occlusion-aware, edge-aware plane sweep (the margin beyond the
+      photo from the border's), 48 planes, the paper's
       losses except L_ac (which blurred novel views in the ablation), the depth-consistency terms
       in an occlusion-tolerant form (cmc.losses.robust_depth_consistency), plus a concentration
       prior on each ray's opacity (cmc.losses.distortion), 400 steps: about 2-3 minutes on fern

@@ -98,7 +98,7 @@ class PyramidFieldConfig:
     stereo_temperature: float = 0.01
     stereo_occlusion_aware: bool = True  # that prior takes the best-matching other view, not the mean
     stereo_edge_sigma: float = 0.1  # > 0: edge-aware cost aggregation (cmc.planesweep), colour scale
-    stereo_extend_border: bool = False  # the margin starts with the image border's geometry (cmc.planesweep)
+    stereo_extend_border: bool = True  # the margin starts with the image border's geometry (cmc.planesweep)
 
 
 class PyramidPlaneField(MPIField):
