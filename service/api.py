@@ -38,6 +38,7 @@ from service.schemas import (
     ErrorBody,
     Health,
     JobError,
+    PathName,
     RenderCamera,
     SceneLinks,
     SceneList,
@@ -381,7 +382,7 @@ def get_camera_path(
     scene_id: SceneId,
     svc: Svc,
     owner: Owner,
-    path: Literal["spiral", "orbit", "dolly"] = "orbit",
+    path: PathName = "orbit",
     frames: Annotated[int, Query(ge=1, le=1000, description="cameras along the closed path")] = 30,
     convention: Literal["opengl", "opencv"] = "opengl",
 ) -> CameraPath:
@@ -511,7 +512,7 @@ def get_video(
     scene_id: SceneId,
     svc: Svc,
     owner: Owner,
-    path: Literal["spiral", "orbit", "dolly"] = "spiral",
+    path: PathName = "spiral",
 ) -> Response:
     _ready_scene(svc, scene_id, owner)
     mp4, state_key = video_keys(scene_id, path)

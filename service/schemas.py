@@ -91,8 +91,12 @@ class RenderCamera(BaseModel):
     )
 
 
+# The camera paths of cmc.camera_paths (PathKind), spelled here so the API need not import cmc.
+PathName = Literal["spiral", "orbit", "dolly"]
+
+
 class CameraPath(BaseModel):
-    path: Literal["spiral", "orbit", "dolly"]
+    path: PathName
     frames: list[RenderCamera] = Field(
         description="cameras along the path, in order; each is a body for /render and /depth as it is"
     )
