@@ -45,11 +45,15 @@ from service.schemas import (
     SceneOptions,
     SceneOut,
     VideoBuilding,
+    WebhookAttempt,
+    WebhookDelivery,
+    WebhookLog,
+    WebhookSecret,
 )
 from service.settings import Settings
 from service.storage import Storage, video_keys
 from service.store import IdempotencyConflict, SceneRecord, SceneStore
-from service.uploads import check_images, parse_cameras, parse_options, receive_upload
+from service.uploads import check_images, parse_callback_url, parse_cameras, parse_options, receive_upload
 
 log = logging.getLogger("cmc.api")
 
@@ -135,6 +139,7 @@ def scene_out(rec: SceneRecord) -> SceneOut:
             viewer=f"{base}/viewer",
             video=f"{base}/video",
             camera_path=f"{base}/camera-path",
+            webhooks=f"{base}/webhooks",
         ),
     )
 
@@ -219,6 +224,12 @@ _UPLOAD_BODY = {
                             "description": "optional JSON, e.g. {\"preset\": \"fast\", \"steps\": 400, "
                             "\"resolution\": 504, \"seed\": 0} (see SceneOptions)",
                         },
+                        "callback_url": {
+                            "type": "string",
+                            "format": "uri",
+                            "description": "optional http(s) URL for signed webhooks (scene.ready, scene.failed, "
+                            "video.ready, video.failed); must resolve to public addresses",
+                        },
                     },
                 }
             }
@@ -264,6 +275,7 @@ async def create_scene(
                 return _created(existing, replayed=True)
         stored = await run_in_threadpool(check_images, upload, s)
         options = parse_options(upload, s)
+        callback_url = await run_in_threadpool(parse_callback_url, upload, s)
         cameras = await run_in_threadpool(parse_cameras, upload, stored)
         if cameras is not None:
             svc.storage.write_bytes(f"{scene_id}/uploads/cameras.json", json.dumps(cameras).encode())
@@ -277,6 +289,7 @@ async def create_scene(
                 idempotency_key,
                 upload.digest,
                 scene_id,
+                callback_url,
             )
         )
     except IdempotencyConflict as e:
@@ -528,6 +541,51 @@ def get_video(
         svc.queue.submit_video(scene_id, path)
     body = VideoBuilding(progress=round(float(state["progress"]), 3))
     return JSONResponse(body.model_dump(), status_code=202, headers={"Retry-After": "5"})
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/webhooks",
+    response_model=WebhookLog,
+    responses=ERRORS,
+    summary="The scene's webhook deliveries: every event, every try and its outcome",
+)
+def get_webhooks(scene_id: SceneId, svc: Svc, owner: Owner) -> WebhookLog:
+    _scene(svc, scene_id, owner)
+    deliveries = [
+        WebhookDelivery(
+            id=d.id,
+            type=d.event,
+            status=d.status,  # type: ignore[arg-type]
+            url=d.url,
+            created_at=_iso(d.created_at) or "",
+            delivered_at=_iso(d.delivered_at),
+            next_attempt_at=_iso(d.next_attempt_at) if d.status == "pending" else None,
+            attempts=[WebhookAttempt(**a) for a in d.attempts],
+            body=json.loads(d.body),
+        )
+        for d in svc.store.deliveries(scene_id)
+    ]
+    return WebhookLog(callback_url=svc.store.callback_url(scene_id), deliveries=deliveries)
+
+
+@router.get(
+    "/v1/webhooks/secret",
+    response_model=WebhookSecret,
+    responses={**ERRORS, 404: {"model": ErrorBody, "description": "webhooks are off (CMC_WEBHOOK_SECRET unset)"}},
+    summary="Your API key's webhook signing secret and how signatures are made",
+)
+def get_webhook_secret(svc: Svc, owner: Owner) -> WebhookSecret:
+    from service.webhooks import ID_HEADER, SIGNATURE_HEADER, TIMESTAMP_HEADER, owner_secret
+
+    if not svc.settings.webhook_secret:
+        raise APIError(404, "webhooks_not_configured", "this server sends no webhooks (CMC_WEBHOOK_SECRET is not set)")
+    return WebhookSecret(
+        secret=owner_secret(svc.settings.webhook_secret, owner),
+        signature_header=SIGNATURE_HEADER,
+        timestamp_header=TIMESTAMP_HEADER,
+        id_header=ID_HEADER,
+        scheme="v1=hex(HMAC-SHA256(secret, timestamp + '.' + raw body))",
+    )
 
 
 @cache

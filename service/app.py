@@ -45,7 +45,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     runner = None
     if queue is None:
         if settings.mode == "celery":
-            queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue)
+            queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue, settings.webhook_queue)
         else:
             from worker.embedded import EmbeddedRunner
 

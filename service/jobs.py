@@ -1,8 +1,9 @@
 """Sending jobs to workers: one small interface, a Celery implementation.
 
 The API never imports worker code: Celery tasks are sent *by name* (``cmc.poses`` on the CPU
-queue, ``cmc.train`` and ``cmc.video`` on the GPU queue) with the scene id (and the video's path
-kind) as arguments; the database and storage hold everything else. The embedded runner
+queue, ``cmc.train`` and ``cmc.video`` on the GPU queue, ``cmc.webhook`` on the webhook queue)
+with the scene id (and the video's path kind) or the delivery id as arguments; the database and
+storage hold everything else. The embedded runner
 (``worker.embedded``) implements the same interface in-process for ``cmc serve``.
 """
 
@@ -12,7 +13,12 @@ from typing import Protocol
 
 from service.store import Phase
 
-TASK_NAMES: dict[str, str] = {"poses": "cmc.poses", "train": "cmc.train", "video": "cmc.video"}
+TASK_NAMES: dict[str, str] = {
+    "poses": "cmc.poses",
+    "train": "cmc.train",
+    "video": "cmc.video",
+    "webhook": "cmc.webhook",
+}
 
 
 class JobQueue(Protocol):
@@ -22,6 +28,10 @@ class JobQueue(Protocol):
 
     def submit_video(self, scene_id: str, path: str) -> None:
         """Ask a worker to render the camera-path video ``path`` of a ready scene."""
+        ...
+
+    def submit_webhook(self, delivery_id: str, countdown: float = 0.0) -> None:
+        """Ask for a try of a webhook delivery in ``countdown`` seconds (duplicates are harmless)."""
         ...
 
     def depth(self) -> dict[str, int]:
@@ -36,10 +46,13 @@ class JobQueue(Protocol):
 class CeleryJobQueue:
     """Sends tasks by name through a Celery client (no worker code imported)."""
 
-    def __init__(self, broker_url: str, cpu_queue: str = "cpu", gpu_queue: str = "gpu"):
+    def __init__(
+        self, broker_url: str, cpu_queue: str = "cpu", gpu_queue: str = "gpu", webhook_queue: str = "webhooks"
+    ):
         from celery import Celery
 
-        self.queues = {"poses": cpu_queue, "train": gpu_queue, "video": gpu_queue}  # task key -> queue
+        # task key -> queue
+        self.queues = {"poses": cpu_queue, "train": gpu_queue, "video": gpu_queue, "webhook": webhook_queue}
         self.app = Celery("cmc-api", broker=broker_url)
         self.app.conf.broker_connection_retry_on_startup = True
         self.app.conf.broker_transport_options = {"max_retries": 3, "interval_start": 0.2, "interval_step": 0.5}
@@ -50,6 +63,10 @@ class CeleryJobQueue:
 
     def submit_video(self, scene_id: str, path: str) -> None:
         self.app.send_task(TASK_NAMES["video"], args=[scene_id, path], queue=self.queues["video"])
+
+    def submit_webhook(self, delivery_id: str, countdown: float = 0.0) -> None:
+        queue = self.queues["webhook"]
+        self.app.send_task(TASK_NAMES["webhook"], args=[delivery_id], queue=queue, countdown=countdown or None)
 
     def _redis(self):
         import redis

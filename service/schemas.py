@@ -47,6 +47,7 @@ class SceneLinks(BaseModel):
     viewer: str
     video: str
     camera_path: str
+    webhooks: str
 
 
 class SceneOut(BaseModel):
@@ -110,3 +111,37 @@ class Health(BaseModel):
 class VideoBuilding(BaseModel):
     status: Literal["building"] = "building"
     progress: float = Field(description="frames rendered so far, 0-1")
+
+
+class WebhookAttempt(BaseModel):
+    at: str = Field(description="ISO 8601, UTC")
+    status_code: int | None = Field(description="the receiver's HTTP status; null when no answer came")
+    error: str | None = Field(description="why the try did not count (null: delivered)")
+    duration_ms: float
+
+
+class WebhookDelivery(BaseModel):
+    id: str = Field(description="the idempotency id: the body's id and the CMC-Webhook-Id header")
+    type: str = Field(description="scene.ready, scene.failed, video.ready or video.failed")
+    status: Literal["pending", "delivered", "failed"] = Field(
+        description="pending: tried again at next_attempt_at; failed: every try failed, given up"
+    )
+    url: str
+    created_at: str
+    delivered_at: str | None
+    next_attempt_at: str | None
+    attempts: list[WebhookAttempt] = Field(description="every try, oldest first")
+    body: dict[str, Any] = Field(description="the JSON body sent on every try")
+
+
+class WebhookLog(BaseModel):
+    callback_url: str | None = Field(description="where the scene's webhooks go (null: none)")
+    deliveries: list[WebhookDelivery] = Field(description="oldest first")
+
+
+class WebhookSecret(BaseModel):
+    secret: str = Field(description="HMAC-SHA256 key of this API key's webhook signatures")
+    signature_header: str
+    timestamp_header: str
+    id_header: str
+    scheme: str = Field(description="how the signature is made")

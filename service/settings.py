@@ -68,6 +68,25 @@ class Settings(BaseSettings):
     render_queue: int = Field(8, ge=0, description="renders waiting for one of those; more get 503 + Retry-After")
     max_render_pixels: int = Field(4_000_000, ge=1, description="largest render (width x height)")
 
+    # -- webhooks (service/webhooks.py) -----------------------------------------------------
+    webhook_secret: str = Field(
+        "",
+        description="master secret of webhook signatures: each API key signs with its own secret derived from it "
+        "(GET /v1/webhooks/secret); empty: uploads with a callback_url are refused",
+    )
+    webhook_allow_private: bool = Field(
+        False,
+        description="accept callback URLs that resolve to loopback, private, link-local or other non-public "
+        "addresses (off: refused, against SSRF; on for tests and private deployments)",
+    )
+    webhook_max_attempts: int = Field(10, ge=1, le=50, description="tries of a webhook delivery before giving up")
+    webhook_backoff_seconds: float = Field(
+        10.0, gt=0, description="wait before the second try; doubled after each failed try"
+    )
+    webhook_backoff_max_seconds: float = Field(3600.0, gt=0, description="longest wait between two tries")
+    webhook_timeout_seconds: float = Field(10.0, gt=0, description="seconds a receiver has to answer one try")
+    webhook_queue: str = Field("webhooks", description="Celery queue of webhook deliveries")
+
     # -- embedded mode ----------------------------------------------------------------------
     mode: Literal["embedded", "celery"] = Field(
         "embedded", description="embedded: jobs run in the API process; celery: sent to workers"

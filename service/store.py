@@ -22,11 +22,13 @@ from the last checkpoint.
 
 from __future__ import annotations
 
+import json
 import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal
 
@@ -36,6 +38,7 @@ from sqlalchemy import (
     Float,
     Integer,
     String,
+    Text,
     UniqueConstraint,
     create_engine,
     event,
@@ -88,6 +91,55 @@ class SceneRow(Base):
     enqueued_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     started_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+
+
+# Webhooks live in tables of their own (created beside an existing database's ``scenes``, which
+# needs no migration): a scene's callback URL, and one row per event to deliver.
+class CallbackRow(Base):
+    __tablename__ = "scene_callbacks"
+
+    scene_id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    url: Mapped[str] = mapped_column(String(2000))
+
+
+class DeliveryRow(Base):
+    __tablename__ = "webhook_deliveries"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)  # the idempotency id in the body
+    scene_id: Mapped[str] = mapped_column(String(32), index=True)
+    owner: Mapped[str] = mapped_column(String(64))  # whose signing secret signs it
+    event: Mapped[str] = mapped_column(String(40))
+    url: Mapped[str] = mapped_column(String(2000))
+    body: Mapped[str] = mapped_column(Text)  # the exact JSON sent, the same bytes on every attempt
+    status: Mapped[str] = mapped_column(String(10), index=True)  # pending, delivered, failed
+    attempts: Mapped[list[dict[str, Any]]] = mapped_column(JSON, default=list)
+    next_attempt_at: Mapped[float | None] = mapped_column(Float, nullable=True, index=True)
+    created_at: Mapped[float] = mapped_column(Float)
+    updated_at: Mapped[float] = mapped_column(Float)
+    delivered_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+
+
+@dataclass(frozen=True)
+class Delivery:
+    """A snapshot of one webhook delivery: ``attempts`` lists ``{at, status_code, error,
+    duration_ms}`` per try, oldest first; ``next_attempt_at`` is set while ``pending``."""
+
+    id: str
+    scene_id: str
+    owner: str
+    event: str
+    url: str
+    body: str
+    status: str
+    attempts: list[dict[str, Any]]
+    next_attempt_at: float | None
+    created_at: float
+    updated_at: float
+    delivered_at: float | None
+
+    @staticmethod
+    def of(row: DeliveryRow) -> Delivery:
+        return Delivery(**{f: getattr(row, f) for f in Delivery.__dataclass_fields__})
 
 
 @dataclass(frozen=True)
@@ -179,11 +231,13 @@ class SceneStore:
         idempotency_key: str | None = None,
         request_digest: str | None = None,
         scene_id: str | None = None,
+        callback_url: str | None = None,
     ) -> tuple[SceneRecord, bool]:
         """Insert a queued scene; returns (record, created).
 
         With an ``idempotency_key`` already used by ``owner``, returns the existing scene and
         False when ``request_digest`` matches, and raises IdempotencyConflict when it does not.
+        ``callback_url`` (checked by the caller) receives the scene's webhooks.
         """
         now = time.time()
         row = SceneRow(
@@ -209,6 +263,9 @@ class SceneStore:
         try:
             with self._session() as s:
                 s.add(row)
+                if callback_url:
+                    s.flush()  # the scene first: a duplicate Idempotency-Key fails here
+                    s.add(CallbackRow(scene_id=row.id, url=callback_url))
             return SceneRecord.of(row), True
         except IntegrityError:
             if idempotency_key is None:
@@ -336,7 +393,10 @@ class SceneStore:
             .values(**values)
         )
         with self._session() as s:
-            return s.execute(stmt).rowcount == 1
+            done = s.execute(stmt).rowcount == 1
+            if done and status in ("ready", "failed"):
+                _add_event(s, scene_id, f"scene.{status}", {"status": status}, now)
+            return done
 
     def release(self, scene_id: str, worker: str) -> None:
         """Give the lease back without changing the phase (the job will be picked up again)."""
@@ -351,7 +411,7 @@ class SceneStore:
         """Mark a job failed (whoever holds it); no-op when it already ended."""
         now = time.time()
         with self._session() as s:
-            s.execute(
+            result = s.execute(
                 update(SceneRow)
                 .where(SceneRow.id == scene_id, SceneRow.status.not_in(TERMINAL))
                 .values(
@@ -365,6 +425,9 @@ class SceneStore:
                     finished_at=now,
                 )
             )
+            if result.rowcount == 1:
+                error = {"code": code, "message": message[:2000]}
+                _add_event(s, scene_id, "scene.failed", {"status": "failed", "error": error}, now)
 
     def stale_jobs(self, requeue_after_seconds: float) -> list[SceneRecord]:
         """Unfinished jobs whose worker's lease expired, or that waited in a queue so long
@@ -410,6 +473,109 @@ class SceneStore:
             self.fail(scene.id, "worker_lost", f"the job's worker stopped {attempts} times; giving up")
             return False
         return True
+
+    # -- webhooks -------------------------------------------------------------------------------
+    #
+    # An event is written in the same transaction as the change it reports (a ready or failed
+    # scene), so it exists exactly when the change does; senders (worker.webhooks) then deliver
+    # each pending row at least once, claiming it first so that two senders rarely both try.
+
+    def add_event(self, scene_id: str, event: str, data: dict[str, Any]) -> None:
+        """Record an event of the scene for its callback URL (no-op without one)."""
+        with self._session() as s:
+            _add_event(s, scene_id, event, data, time.time())
+
+    def callback_url(self, scene_id: str) -> str | None:
+        with self._session() as s:
+            row = s.get(CallbackRow, scene_id)
+            return None if row is None else row.url
+
+    def deliveries(self, scene_id: str) -> list[Delivery]:
+        """The scene's webhook deliveries, oldest first."""
+        q = select(DeliveryRow).where(DeliveryRow.scene_id == scene_id)
+        with self._session() as s:
+            return [Delivery.of(r) for r in s.scalars(q.order_by(DeliveryRow.created_at, DeliveryRow.id))]
+
+    def delivery(self, delivery_id: str) -> Delivery | None:
+        with self._session() as s:
+            row = s.get(DeliveryRow, delivery_id)
+            return None if row is None else Delivery.of(row)
+
+    def due_deliveries(self, before: float, scene_id: str | None = None, limit: int = 100) -> list[str]:
+        """Ids of pending deliveries whose next attempt is due at ``before``, the oldest first."""
+        q = select(DeliveryRow.id).where(DeliveryRow.status == "pending", DeliveryRow.next_attempt_at <= before)
+        if scene_id is not None:
+            q = q.where(DeliveryRow.scene_id == scene_id)
+        with self._session() as s:
+            return list(s.scalars(q.order_by(DeliveryRow.next_attempt_at).limit(limit)))
+
+    def next_delivery_at(self) -> float | None:
+        """When the earliest pending delivery is due (None: nothing pending)."""
+        with self._session() as s:
+            return s.scalar(select(func.min(DeliveryRow.next_attempt_at)).where(DeliveryRow.status == "pending"))
+
+    def claim_delivery(self, delivery_id: str, hold_seconds: float, early: float = 1.0) -> Delivery | None:
+        """Take a pending delivery that is due (within ``early`` seconds) for one attempt: its
+        next attempt moves ``hold_seconds`` ahead, so other senders leave it alone meanwhile
+        (and pick it up again after that if this one dies). None: not pending, or not due."""
+        now = time.time()
+        stmt = (
+            update(DeliveryRow)
+            .where(
+                DeliveryRow.id == delivery_id,
+                DeliveryRow.status == "pending",
+                DeliveryRow.next_attempt_at <= now + early,
+            )
+            .values(next_attempt_at=now + hold_seconds, updated_at=now)
+        )
+        with self._session() as s:
+            if s.execute(stmt).rowcount != 1:
+                return None
+            row = s.get(DeliveryRow, delivery_id)
+            return None if row is None else Delivery.of(row)
+
+    def record_attempt(
+        self, delivery_id: str, attempt: dict[str, Any], status: str, next_attempt_at: float | None
+    ) -> None:
+        """Append one attempt's outcome; ``status`` pending (retry at ``next_attempt_at``),
+        delivered or failed (given up)."""
+        now = time.time()
+        with self._session() as s:
+            row = s.get(DeliveryRow, delivery_id)
+            if row is None:
+                return
+            row.attempts = [*row.attempts, attempt]
+            row.status, row.updated_at = status, now
+            row.next_attempt_at = next_attempt_at if status == "pending" else None
+            if status == "delivered":
+                row.delivered_at = now
+
+
+def _add_event(s: Session, scene_id: str, event: str, data: dict[str, Any], now: float) -> None:
+    """In session ``s``: a pending delivery of ``event`` to the scene's callback URL, if any.
+    The body's ``id`` is the delivery's id: receivers drop a repeated one (at-least-once)."""
+    callback = s.get(CallbackRow, scene_id)
+    scene = s.get(SceneRow, scene_id)
+    if callback is None or scene is None:
+        return
+    delivery_id = uuid.uuid4().hex
+    created = datetime.fromtimestamp(now, UTC).isoformat().replace("+00:00", "Z")
+    body = {"id": delivery_id, "type": event, "created_at": created, "scene_id": scene_id, "data": data}
+    s.add(
+        DeliveryRow(
+            id=delivery_id,
+            scene_id=scene_id,
+            owner=scene.owner,
+            event=event,
+            url=callback.url,
+            body=json.dumps(body, separators=(",", ":")),
+            status="pending",
+            attempts=[],
+            next_attempt_at=now,
+            created_at=now,
+            updated_at=now,
+        )
+    )
 
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:

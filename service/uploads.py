@@ -7,6 +7,7 @@ Parts of ``POST /v1/scenes`` (multipart/form-data):
   (``uploads/00.jpg``...); the client's file name is kept as data only.
 * ``cameras`` (optional): a transforms.json-style cameras file (see cmc.cameras).
 * ``options`` (optional): JSON, :class:`service.schemas.SceneOptions`.
+* ``callback_url`` (optional): where the scene's webhooks go (:mod:`service.webhooks`).
 
 Limits (``Settings``): request bytes (checked against Content-Length, then counted), images per
 request, bytes per image (counted while streaming: an oversized photo is cut off at the limit,
@@ -49,6 +50,7 @@ class Upload:
     images: list[ImagePart] = field(default_factory=list)
     cameras: bytes | None = None
     options: bytes | None = None
+    callback_url: bytes | None = None
     digest: str = ""  # SHA-256 over every part, for Idempotency-Key conflicts
 
 
@@ -98,7 +100,7 @@ class _Reader:
             part = ImagePart(filename[:200], self.storage.path(f"{self.scene_id}/uploads/{len(images):02d}.upload"))
             images.append(part)
             self._file = part.path.open("wb")
-        elif self._name in ("cameras", "options"):
+        elif self._name in ("cameras", "options", "callback_url"):
             self._small = bytearray()
         # other parts are read (and counted) but ignored
 
@@ -222,6 +224,26 @@ def parse_options(upload: Upload, settings: Settings) -> SceneOptions:
     if opts.steps is not None and opts.steps > settings.max_steps:
         raise APIError(422, "invalid_options", f"steps must be at most {settings.max_steps}")
     return opts
+
+
+def parse_callback_url(upload: Upload, settings: Settings) -> str | None:
+    """The ``callback_url`` part, checked (resolves to public addresses only, unless allowed)."""
+    if upload.callback_url is None:
+        return None
+    from service.webhooks import CallbackRefused, resolve_callback
+
+    if not settings.webhook_secret:
+        raise APIError(
+            422, "webhooks_not_configured", "this server sends no webhooks (CMC_WEBHOOK_SECRET is not set)"
+        )
+    try:
+        url = upload.callback_url.decode("utf-8").strip()
+        resolve_callback(url, settings.webhook_allow_private)
+    except UnicodeDecodeError:
+        raise APIError(422, "invalid_callback_url", "callback_url is not UTF-8 text") from None
+    except CallbackRefused as e:
+        raise APIError(422, "invalid_callback_url", str(e)) from None
+    return url
 
 
 def parse_cameras(upload: Upload, stored_names: list[str]) -> dict | None:

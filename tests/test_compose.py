@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"
 ENV_EXAMPLE = ROOT / ".env.example"
 DOCKERFILES = {"cpu": ROOT / "docker" / "Dockerfile", "gpu": ROOT / "docker" / "Dockerfile.gpu"}
-APP_SERVICES = ("api", "worker-cpu", "worker-gpu")
+APP_SERVICES = ("api", "worker-cpu", "worker-gpu", "worker-webhooks")
 SECRETS = {"CMC_API_KEYS": "test-key-1,test-key-2", "POSTGRES_PASSWORD": "pw0123456789"}
 
 
@@ -205,7 +205,7 @@ def torch_pin() -> str:
 
 
 def test_services_exist(services: dict[str, Any]) -> None:
-    assert {"redis", "db", "api", "worker-cpu", "worker-gpu"} <= set(services)
+    assert {"redis", "db", "api", "worker-cpu", "worker-gpu", "worker-webhooks"} <= set(services)
 
 
 def test_every_variable_compose_reads_is_in_env_example_and_back() -> None:
@@ -236,7 +236,7 @@ def test_compose_refuses_to_start_without_secrets(missing: str) -> None:
 
 def test_api_keys_only_where_needed(services: dict[str, Any]) -> None:
     assert environment(services["api"])["CMC_API_KEYS"] == SECRETS["CMC_API_KEYS"]
-    for name in ("worker-cpu", "worker-gpu"):
+    for name in ("worker-cpu", "worker-gpu", "worker-webhooks"):
         assert "CMC_API_KEYS" not in environment(services[name])
 
 
@@ -287,6 +287,22 @@ def test_worker_commands(services: dict[str, Any], name: str, queue_field: str) 
     assert worker_queues(services[name]) == {queue}
 
 
+def test_webhook_worker(services: dict[str, Any]) -> None:
+    """Webhook tries are short network calls: many at once in threads, on a queue of their own,
+    signed with the secret the API derives each key's secret from."""
+    svc = services["worker-webhooks"]
+    cmd = command(svc)
+    assert cmd[:4] == ["celery", "-A", "worker.celery_app", "worker"], cmd
+    assert option(cmd, "-P", "--pool") == ["threads"] and int(option(cmd, "-c", "--concurrency")[0]) > 1
+    env = environment(svc)
+    assert worker_queues(svc) == {env.get("CMC_WEBHOOK_QUEUE", Settings.model_fields["webhook_queue"].default)}
+    assert env["CMC_WEBHOOK_SECRET"] == environment(services["api"])["CMC_WEBHOOK_SECRET"]
+    for name in ("worker-cpu", "worker-gpu"):
+        assert worker_queues(svc).isdisjoint(worker_queues(services[name])), "webhooks would wait behind jobs"
+    signed = load_compose(**SECRETS, CMC_WEBHOOK_SECRET="s3cret")["services"]
+    assert {environment(signed[n])["CMC_WEBHOOK_SECRET"] for n in APP_SERVICES} == {"s3cret"}
+
+
 _CELERY_PROBE = """
 import json, sys
 import worker.celery_app as m
@@ -304,7 +320,7 @@ def _settings_fields(env: dict[str, str]) -> dict[str, str]:
     return {k[4:].lower(): v for k, v in env.items() if k.startswith("CMC_")}
 
 
-PROBED_WORKERS = ["worker-cpu", "worker-gpu"]
+PROBED_WORKERS = ["worker-cpu", "worker-gpu", "worker-webhooks"]
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -343,7 +359,7 @@ def test_celery_routes_reach_the_workers(services: dict[str, Any], celery_probe:
     assert celery_probe.returncode == 0, err
     probe = json.loads(out)
     routes = {PROBED_WORKERS[0]: probe["routes"], **probe["other_routes"]}
-    consumer = {"poses": "worker-cpu", "train": "worker-gpu", "video": "worker-gpu"}
+    consumer = {"poses": "worker-cpu", "train": "worker-gpu", "video": "worker-gpu", "webhook": "worker-webhooks"}
     assert set(consumer) == set(TASK_NAMES)
     api = Settings(**_settings_fields(environment(services["api"])))
     for phase, task in TASK_NAMES.items():
@@ -352,10 +368,10 @@ def test_celery_routes_reach_the_workers(services: dict[str, Any], celery_probe:
         queue = routes[worker][task]["queue"]
         assert queue in worker_queues(services[worker]), f"{task} is routed to {queue!r}; {worker} consumes others"
         # the API sends tasks by name to the queues its own settings name: the same ones
-        assert CeleryJobQueue(api.broker_url, api.cpu_queue, api.gpu_queue).queues[phase] == queue
+        assert CeleryJobQueue(api.broker_url, api.cpu_queue, api.gpu_queue, api.webhook_queue).queues[phase] == queue
 
 
-@pytest.mark.parametrize("name,node", [("worker-cpu", "cpu"), ("worker-gpu", "gpu")])
+@pytest.mark.parametrize("name,node", [("worker-cpu", "cpu"), ("worker-gpu", "gpu"), ("worker-webhooks", "webhooks")])
 def test_worker_healthcheck_pings_its_own_node(services: dict[str, Any], name: str, node: str) -> None:
     names = option(command(services[name]), "-n", "--hostname")
     assert names == [f"{node}@%h"]
@@ -460,9 +476,10 @@ def test_gpu_worker(services: dict[str, Any]) -> None:
 
 
 def test_cpu_services_use_the_cpu_image(services: dict[str, Any]) -> None:
-    for name in ("api", "worker-cpu"):
+    for name in ("api", "worker-cpu", "worker-webhooks"):
         assert PurePosixPath(services[name]["build"]["dockerfile"]) == PurePosixPath("docker/Dockerfile")
     assert services["api"]["image"] == services["worker-cpu"]["image"] != services["worker-gpu"]["image"]
+    assert services["worker-webhooks"]["image"] == services["api"]["image"]
 
 
 # -- the images --------------------------------------------------------------------------------

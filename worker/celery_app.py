@@ -8,6 +8,10 @@ is never handed out twice while its worker lives. A worker that dies is detected
 job lease in the database: every worker runs the reaper (``requeue_stale_jobs``) at start and
 every ``lease_seconds / 2``, and the next worker resumes from the last checkpoint. A message
 delivered twice is harmless: claiming a job in the database is atomic.
+
+Webhooks: ``celery -A worker.celery_app worker -Q webhooks`` runs the ``cmc.webhook`` task, one
+try of a delivery that re-sends itself with a countdown after a failure (worker.webhooks); the
+reaper also re-sends deliveries whose message was lost.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from service.settings import Settings, load_settings
 from service.storage import LocalStorage
 from service.store import SceneStore
 from worker.pipeline import JobContext, requeue_stale_jobs, run_job, run_video
+from worker.webhooks import deliver, resend_overdue
 
 log = logging.getLogger("cmc.worker")
 
@@ -40,6 +45,7 @@ def create_celery(settings: Settings) -> Celery:
             TASK_NAMES["poses"]: {"queue": settings.cpu_queue},
             TASK_NAMES["train"]: {"queue": settings.gpu_queue},
             TASK_NAMES["video"]: {"queue": settings.gpu_queue},
+            TASK_NAMES["webhook"]: {"queue": settings.webhook_queue},
         },
         task_default_queue=settings.cpu_queue,
         task_ignore_result=True,
@@ -52,12 +58,19 @@ def create_celery(settings: Settings) -> Celery:
 settings = load_settings(mode="celery")
 app = create_celery(settings)
 _ctx: JobContext | None = None  # one per worker process, made after the fork
+_ctx_lock = threading.Lock()  # the webhook worker runs tasks in threads
 
 
 def context() -> JobContext:
     global _ctx
+    with _ctx_lock:
+        return _context()
+
+
+def _context() -> JobContext:
+    global _ctx
     if _ctx is None:
-        queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue)
+        queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue, settings.webhook_queue)
         store = SceneStore(settings.resolved_database_url)
         _ctx = JobContext(store, LocalStorage(settings.resolved_storage_dir), queue, settings)
     return _ctx
@@ -79,16 +92,28 @@ def video_task(scene_id: str, path: str) -> str:
     return run_video(context(), scene_id, path)
 
 
+@app.task(name=TASK_NAMES["webhook"], time_limit=settings.webhook_timeout_seconds + 60)
+def webhook_task(delivery_id: str) -> str:
+    """One try of a webhook delivery; after a failed try, the next one is sent with its backoff."""
+    ctx = context()
+    delay = deliver(ctx.store, settings, delivery_id)
+    if delay is None:
+        return "done"
+    ctx.queue.submit_webhook(delivery_id, delay)
+    return f"retry in {delay:.1f} s"
+
+
 def _reaper(stop: threading.Event) -> None:
     ctx = JobContext(
         SceneStore(settings.resolved_database_url),
         LocalStorage(settings.resolved_storage_dir),
-        CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue),
+        CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue, settings.webhook_queue),
         settings,
     )
     while True:
         try:
             requeue_stale_jobs(ctx)
+            resend_overdue(ctx)
         except Exception:
             log.warning("reaper pass failed", exc_info=True)
         if stop.wait(settings.lease_seconds / 2):

@@ -5,7 +5,8 @@ No Redis, no Celery: jobs run one at a time, in the order sent. It implements
 At start it re-runs every unfinished job of the database (a previous process stopped while
 they were queued or running; training resumes from its checkpoint). At shutdown it asks the
 running job to checkpoint and stop, leaving it for the next start. One ``cmc serve`` process
-per data folder.
+per data folder. Webhooks go out from a thread of their own (:class:`worker.webhooks.WebhookSender`),
+never queued behind a job; deliveries still pending at a restart are sent by the next start.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from service.settings import Settings
 from service.storage import Storage
 from service.store import Phase, SceneStore
 from worker.pipeline import JobContext, run_job, run_video
+from worker.webhooks import WebhookSender
 
 log = logging.getLogger("cmc.worker")
 
@@ -28,6 +30,7 @@ class EmbeddedRunner:
         self.ctx = JobContext(store, storage, self, settings)
         self._jobs: queue.Queue[tuple[str, Callable[[], object]] | None] = queue.Queue()
         self._thread = threading.Thread(target=self._loop, name="cmc-embedded-runner", daemon=True)
+        self.webhooks = WebhookSender(store, settings)
 
     # -- JobQueue ------------------------------------------------------------------------------
 
@@ -36,6 +39,10 @@ class EmbeddedRunner:
 
     def submit_video(self, scene_id: str, path: str) -> None:
         self._jobs.put((f"{scene_id} video {path}", lambda: run_video(self.ctx, scene_id, path)))
+
+    def submit_webhook(self, delivery_id: str, countdown: float = 0.0) -> None:
+        del delivery_id, countdown  # the sender reads what is due from the database
+        self.webhooks.wake()
 
     def depth(self) -> dict[str, int]:
         return {"embedded": self._jobs.qsize()}
@@ -55,12 +62,14 @@ class EmbeddedRunner:
         if unfinished:
             log.warning("resuming %d unfinished job(s) from the last run", len(unfinished))
         self._thread.start()
+        self.webhooks.start()
 
     def stop(self, timeout: float = 30.0) -> None:
         """Checkpoint and stop the running job (it stays queued for the next start)."""
         self.ctx.shutdown.set()
         self._jobs.put(None)
         self._thread.join(timeout)
+        self.webhooks.stop()
 
     def _loop(self) -> None:
         while True:

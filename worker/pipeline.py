@@ -166,8 +166,15 @@ def run_job(ctx: JobContext, scene_id: str, phase: Phase) -> str:
     after = ctx.store.get(scene_id, include_deleted=True)
     if after is None or after.deleted:
         ctx.storage.delete_scene(scene_id)  # anything written after the API removed the data
+    kick_webhooks(ctx, scene_id)  # a ready or failed scene recorded its event with the change
     log.info("job %s phase %s: %s", scene_id, phase, outcome)
     return outcome
+
+
+def kick_webhooks(ctx: JobContext, scene_id: str) -> None:
+    from worker.webhooks import kick
+
+    kick(ctx, scene_id)
 
 
 def _user_names(rec: SceneRecord, message: str) -> str:
@@ -370,11 +377,16 @@ def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
         log.exception("video %s of %s failed", path, scene_id)
         error = {"error": f"{type(e).__name__}: {e}", "updated_at": time.time()}
         ctx.storage.write_bytes(state, json.dumps(error).encode())
+        ctx.store.add_event(scene_id, "video.failed", {"path": path, "error": error["error"]})
+        kick_webhooks(ctx, scene_id)
         return "failed"
     ctx.storage.path(state).unlink(missing_ok=True)
     after = ctx.store.get(scene_id)
     if after is None:  # deleted while rendering
         ctx.storage.delete_scene(scene_id)
+        return "done"
+    ctx.store.add_event(scene_id, "video.ready", {"path": path, "url": f"/v1/scenes/{scene_id}/video?path={path}"})
+    kick_webhooks(ctx, scene_id)
     return "done"
 
 
@@ -387,4 +399,6 @@ def requeue_stale_jobs(ctx: JobContext) -> list[str]:
             submit_next(ctx, rec.id, rec.phase)
             sent.append(rec.id)
             log.warning("job %s (%s) re-queued: its worker stopped answering", rec.id, rec.phase)
+        else:
+            kick_webhooks(ctx, rec.id)  # it may have failed (worker_lost)
     return sent
