@@ -171,6 +171,16 @@ def cmd_bench(args: argparse.Namespace) -> None:
         print(f"wrote {out} and {out.with_suffix('.md')}")
 
 
+def cmd_export(args: argparse.Namespace) -> None:
+    from cmc.gltf import export_glb
+
+    data, index = export_glb(args.baked, args.mpi)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_bytes(data)
+    print(f"wrote {out} ({len(data) / 1e6:.1f} MB): the planes of MPI {index} and the input cameras")
+
+
 def cmd_demo(args: argparse.Namespace) -> None:
     from cmc.demo import run_demo
 
@@ -218,6 +228,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--frames", type=int, help="video frames along the path (default 120)")
     r.add_argument("--fps", type=float, help="video frames per second (default 30)")
     r.set_defaults(func=cmd_render)
+
+    x = sub.add_parser("export", help="export a baked MPI as glTF (.glb): textured planes and the input cameras")
+    x.add_argument("baked", help="baked folder (mpi.json + atlases)")
+    x.add_argument("--out", required=True, help="the .glb file to write")
+    x.add_argument("--mpi", type=int, help="which MPI (default: the one nearest the mean input camera)")
+    x.set_defaults(func=cmd_export)
 
     b = sub.add_parser("bench", help="benchmark: LLFF with the paper's protocol, or the wide-baseline synthetic scenes")
     b.add_argument("dataset", choices=["llff", "synthetic"])

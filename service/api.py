@@ -140,6 +140,7 @@ def scene_out(rec: SceneRecord) -> SceneOut:
             video=f"{base}/video",
             camera_path=f"{base}/camera-path",
             webhooks=f"{base}/webhooks",
+            export_glb=f"{base}/export.glb",
         ),
     )
 
@@ -505,6 +506,45 @@ def get_mpi_file(scene_id: SceneId, name: str, svc: Svc, owner: Owner) -> Respon
     if name not in atlases:  # only names the manifest lists; never a client-built path
         raise not_found("file")
     return FileResponse(svc.storage.path(f"{scene_id}/baked/{name}"), media_type="image/png")
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/export.glb",
+    responses={
+        **ERRORS_READY,
+        200: {"content": {"model/gltf-binary": {}}, "description": "glTF 2.0 binary: textured planes and cameras"},
+    },
+    response_class=Response,
+    summary="The scene as glTF (.glb): one MPI's planes as alpha-blended textured quads, and the input cameras",
+)
+async def export_glb(
+    scene_id: SceneId,
+    svc: Svc,
+    owner: Owner,
+    mpi: Annotated[
+        int | None, Query(ge=0, description="which input view's MPI (default: the one nearest the mean camera)")
+    ] = None,
+) -> Response:
+    from cmc.gltf import export_glb as build
+    from cmc.gltf import nearest_mpi
+
+    rec = await run_in_threadpool(_ready_scene, svc, scene_id, owner)
+    manifest = json.loads(svc.storage.read_bytes(f"{scene_id}/baked/mpi.json"))
+    count = len(manifest["mpis"])
+    if mpi is not None and mpi >= count:
+        raise APIError(422, "invalid_mpi", f"mpi must be 0 to {count - 1}: the scene has {count} input views")
+    index = nearest_mpi(manifest) if mpi is None else mpi
+    key = f"{scene_id}/exports/mpi_{index:02d}.glb"
+    if not svc.storage.exists(key):  # built once per MPI, then served from storage
+
+        def write() -> None:
+            names = rec.upload_names if len(rec.upload_names) == count else None  # the photos' names
+            data, _ = build(svc.storage.path(f"{scene_id}/baked"), index, names)
+            svc.storage.write_bytes(key, data)
+
+        await svc.render_queue.run(write)
+    headers = {"Content-Disposition": f'attachment; filename="{scene_id}.glb"', "Cache-Control": "private"}
+    return FileResponse(svc.storage.path(key), media_type="model/gltf-binary", headers=headers)
 
 
 VIDEO_RESEND_AFTER_S = 600  # a build whose state was not updated for this long died: send it again

@@ -48,6 +48,7 @@ class SceneLinks(BaseModel):
     video: str
     camera_path: str
     webhooks: str
+    export_glb: str
 
 
 class SceneOut(BaseModel):
