@@ -371,7 +371,11 @@ def summarize(records, args, elapsed, keys, owners, store, peak_unfinished) -> d
         "server_errors": len(server_errors),
         "renderer_busy_503": sum(1 for r in records if r["code"] == "renderer_busy"),
         "latency": latency,
-        "retry_after_values": sorted({r["retry_after"] for r in refused}, key=lambda v: int(v)),
+        "retry_after_by_code": {
+            code: [min(vs), max(vs)]
+            for code in sorted({r["code"] for r in refused})
+            if (vs := [int(r["retry_after"]) for r in refused if r["code"] == code and r["retry_after"]])
+        },
         "per_key": per_key,
         "render_bound_per_key": bound,
         "checks": checks,
