@@ -9,7 +9,7 @@ import time
 import uuid
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from functools import cache
+from functools import cache, partial
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -23,6 +23,7 @@ from service.auth import KeyRing
 from service.errors import APIError, not_found
 from service.jobs import JobQueue
 from service.metrics import Metrics
+from service.quotas import STATE_KEY, Quotas, headers_of
 from service.renders import (
     BakedCache,
     Rendered,
@@ -70,6 +71,7 @@ class Services:
     renders: BakedCache
     metrics: Metrics
     render_queue: RenderQueue
+    quotas: Quotas
 
 
 def _services(request: Request) -> Services:
@@ -87,6 +89,14 @@ Svc = Annotated[Services, Depends(_services)]
 Owner = Annotated[str, Depends(_owner)]
 SceneId = Annotated[str, "scene id"]
 
+
+def _render_quota(request: Request, owner: Owner) -> None:
+    """Counts a render or depth request against the key's renders per second (429 over it)."""
+    setattr(request.state, STATE_KEY, headers_of(_services(request).quotas.admit_render(owner)))
+
+
+RenderQuota = Depends(_render_quota)
+
 ERRORS: dict[int | str, dict[str, Any]] = {
     code: {"model": ErrorBody, "description": text}
     for code, text in {
@@ -99,8 +109,32 @@ ERRORS_READY: dict[int | str, dict[str, Any]] = {
     **ERRORS,
     409: {"model": ErrorBody, "description": "the scene is not ready yet (code scene_not_ready)"},
 }
+_INT = {"schema": {"type": "integer"}}
+RATE_LIMIT_HEADERS = {
+    "RateLimit-Limit": {
+        **_INT,
+        "description": "the API key's limit closest to refusing (draft-ietf-httpapi-ratelimit-headers-06); "
+        "sent only when the server has API keys",
+    },
+    "RateLimit-Remaining": {**_INT, "description": "requests (or jobs) left under that limit"},
+    "RateLimit-Reset": {
+        **_INT,
+        "description": "seconds until that limit allows more (for concurrent jobs: the shortest ETA of the "
+        "key's unfinished jobs, an estimate)",
+    },
+}
+
+
+def too_many(limits: str) -> dict[int | str, dict[str, Any]]:
+    """The 429 response of a route limited per API key (``limits``: which limits, for people)."""
+    headers = {"Retry-After": {**_INT, "description": "seconds to wait before asking again"}, **RATE_LIMIT_HEADERS}
+    text = f"over the API key's {limits}: retry after Retry-After seconds"
+    return {429: {"model": ErrorBody, "description": text, "headers": headers}}
+
+
 ERRORS_RENDER: dict[int | str, dict[str, Any]] = {
     **ERRORS_READY,
+    **too_many("renders per second (code render_rate_limited)"),
     503: {"model": ErrorBody, "description": "all render slots taken (code renderer_busy): retry after Retry-After"},
 }
 
@@ -247,10 +281,15 @@ _UPLOAD_BODY = {
     openapi_extra=_UPLOAD_BODY,
     responses={
         **ERRORS,
+        202: {"description": "the scene, queued", "headers": RATE_LIMIT_HEADERS},
         400: {"model": ErrorBody, "description": "malformed or interrupted upload"},
         409: {"model": ErrorBody, "description": "Idempotency-Key reused for a different upload"},
         413: {"model": ErrorBody, "description": "request, image bytes or pixels over the limits"},
         415: {"model": ErrorBody, "description": "not multipart, or a photo that is not a supported image"},
+        **too_many(
+            "unfinished jobs (code too_many_concurrent_jobs) or new jobs in 24 hours (code daily_job_quota_exceeded); "
+            "answered before the photos are read"
+        ),
         503: {"model": ErrorBody, "description": "the job queue is unavailable; retry"},
     },
 )
@@ -264,6 +303,32 @@ async def create_scene(
     ] = None,
 ) -> Response:
     scene_id = uuid.uuid4().hex
+    # a place in the key's job quotas, held from before the body is read (a retry of an upload
+    # that made its scene takes none: it is answered with that scene)
+    standings = []
+    if not (idempotency_key and await run_in_threadpool(svc.store.find_by_idempotency_key, owner, idempotency_key)):
+        unfinished = partial(svc.store.unfinished, owner)
+        standings = await run_in_threadpool(svc.quotas.reserve_job, owner, scene_id, unfinished)
+    made = False
+    try:
+        response = await _create_scene(request, svc, owner, scene_id, idempotency_key)
+        made = response.headers.get("Idempotent-Replayed") is None
+    finally:
+        if standings:
+            if made:
+                await run_in_threadpool(svc.quotas.job_created, owner, scene_id)
+            else:
+                await run_in_threadpool(svc.quotas.job_dropped, owner, scene_id)
+    if made:
+        setattr(request.state, STATE_KEY, headers_of(standings))
+    return response
+
+
+async def _create_scene(
+    request: Request, svc: Services, owner: str, scene_id: str, idempotency_key: str | None
+) -> Response:
+    """Receive, check and store the upload as scene ``scene_id`` and queue its job (or answer
+    with the scene an earlier upload with the same Idempotency-Key made)."""
     s = svc.settings
     try:
         upload = await receive_upload(request, s, svc.storage, scene_id)
@@ -417,7 +482,11 @@ def get_camera_path(
     responses={
         **ERRORS_RENDER,
         406: {"model": ErrorBody, "description": "Accept names neither image/png nor image/jpeg"},
-        200: {"content": {"image/png": {}, "image/jpeg": {}}, "description": "the rendered view"},
+        200: {
+            "content": {"image/png": {}, "image/jpeg": {}},
+            "description": "the rendered view",
+            "headers": RATE_LIMIT_HEADERS,
+        },
     },
     response_class=Response,
     summary="Render the scene from any camera (PNG or JPEG by Accept)",
@@ -427,6 +496,7 @@ async def render_view(
     camera: RenderCamera,
     svc: Svc,
     owner: Owner,
+    _: Annotated[None, RenderQuota],
     accept: Annotated[str | None, Header()] = None,
 ) -> Response:
     media = negotiate(accept, ["image/png", "image/jpeg"])
@@ -447,6 +517,7 @@ async def render_view(
             "content": {"image/png": {}, "application/x-npy": {}},
             "description": "16-bit PNG (depth = value x Depth-Scale header, scene units, 0 = no surface), "
             "float32 .npy (scene units), or with preview=true an 8-bit colour map",
+            "headers": RATE_LIMIT_HEADERS,
         },
     },
     response_class=Response,
@@ -457,6 +528,7 @@ async def render_depth(
     camera: RenderCamera,
     svc: Svc,
     owner: Owner,
+    _: Annotated[None, RenderQuota],
     preview: Annotated[bool, Query(description="an 8-bit colour map for people instead of the data")] = False,
     accept: Annotated[str | None, Header()] = None,
 ) -> Response:

@@ -16,8 +16,10 @@ from service.api import Services, router
 from service.auth import KeyRing
 from service.errors import install_error_handlers
 from service.jobs import CeleryJobQueue, JobQueue
+from service.limits import Limiter, MemoryLimiter, RedisLimiter
 from service.metrics import Metrics, MetricsMiddleware
 from service.middleware import BodyGuard, LocalOnly
+from service.quotas import Quotas, RateLimitHeaders
 from service.renders import BakedCache, RenderQueue
 from service.settings import Settings, load_settings
 from service.storage import LocalStorage
@@ -35,9 +37,12 @@ Cameras use the transforms.json shape with a `convention` field (`opengl`, ARKit
 """
 
 
-def create_app(settings: Settings | None = None, queue: JobQueue | None = None) -> FastAPI:
+def create_app(
+    settings: Settings | None = None, queue: JobQueue | None = None, limiter: Limiter | None = None
+) -> FastAPI:
     """Build the app. Without ``queue``: Celery (``settings.mode == 'celery'``) or the
-    embedded runner, started and stopped with the app's lifespan."""
+    embedded runner, started and stopped with the app's lifespan. Without ``limiter``: the
+    quotas are counted in Redis (the broker) in celery mode, in memory embedded."""
     settings = settings or load_settings()
     store = SceneStore(settings.resolved_database_url)
     storage = LocalStorage(settings.resolved_storage_dir)
@@ -52,6 +57,9 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
             runner = EmbeddedRunner(store, storage, settings)
             queue = runner
     metrics = Metrics(store, queue)
+    if limiter is None:
+        limiter = RedisLimiter(settings.broker_url) if settings.mode == "celery" else MemoryLimiter()
+    quotas = Quotas(settings, limiter, not keys.open, lambda limit: metrics.rate_limited.labels(limit).inc())
     render_queue = RenderQueue(settings.render_concurrency, settings.render_queue)
 
     @asynccontextmanager
@@ -66,12 +74,15 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
             if runner is not None:
                 runner.stop()
             render_queue.close()
+            if isinstance(limiter, RedisLimiter):
+                limiter.close()
             store.close()
 
     app = FastAPI(title="CMC reconstruction service", version="1.0.0", description=DESCRIPTION, lifespan=lifespan)
     renders = BakedCache(storage, settings.render_cache_bytes)
-    app.state.services = Services(settings, store, storage, queue, keys, renders, metrics, render_queue)
+    app.state.services = Services(settings, store, storage, queue, keys, renders, metrics, render_queue, quotas)
     install_error_handlers(app)
+    app.add_middleware(RateLimitHeaders)
     app.add_middleware(BodyGuard, keys=keys, max_json_bytes=settings.max_json_bytes, streamed={("POST", "/v1/scenes")})
     if keys.open:
         app.add_middleware(LocalOnly, extra_hosts=set(settings.allowed_hosts.split(",")))

@@ -1,4 +1,5 @@
-"""Prometheus metrics at ``/metrics``: HTTP traffic, jobs by state, job durations, queue depth.
+"""Prometheus metrics at ``/metrics``: HTTP traffic, jobs by state, job durations, queue depth,
+requests refused by quotas and rate limits (``cmc_rate_limited_total{limit}``).
 
 Job numbers are read from the database (and the broker) when scraped, so every API replica
 reports the same truth whichever process ran the jobs. Each app has its own registry.
@@ -62,6 +63,11 @@ class Metrics:
             buckets=(0.01, 0.025, 0.05, 0.1, 0.2, 0.3, 0.5, 1, 2, 5, 10),
             registry=self.registry,
         )
+        self.rate_limited = Counter(
+            "cmc_rate_limited", "Requests refused with 429 by a quota or rate limit", ["limit"], registry=self.registry
+        )
+        for limit in ("concurrent_jobs", "jobs_per_day", "renders_per_second"):  # zeros from the start
+            self.rate_limited.labels(limit)
         self.registry.register(_JobCollector(store, queue))
 
     def export(self) -> bytes:

@@ -87,6 +87,17 @@ class Settings(BaseSettings):
     webhook_timeout_seconds: float = Field(10.0, gt=0, description="seconds a receiver has to answer one try")
     webhook_queue: str = Field("webhooks", description="Celery queue of webhook deliveries")
 
+    # -- quotas and rate limits, per API key (0: no limit; nothing is limited without API keys) ------
+    # Over a limit: 429 with Retry-After and RateLimit-* (service/quotas.py). Counted in Redis
+    # (broker_url) in celery mode, shared by every API replica; in this process's memory embedded.
+    max_concurrent_jobs: int = Field(
+        4, ge=0, description="unfinished scenes (queued or running) per API key; a further upload gets 429"
+    )
+    max_jobs_per_day: int = Field(100, ge=0, description="scenes an API key may create in any 24 hours (rolling)")
+    max_renders_per_second: int = Field(
+        10, ge=0, description="render and depth requests per API key in any one second (together)"
+    )
+
     # -- embedded mode ----------------------------------------------------------------------
     mode: Literal["embedded", "celery"] = Field(
         "embedded", description="embedded: jobs run in the API process; celery: sent to workers"

@@ -300,6 +300,14 @@ class SceneStore:
         with self._session() as s:
             return [SceneRecord.of(r) for r in s.scalars(q)]
 
+    def unfinished(self, owner: str) -> list[tuple[str, float | None]]:
+        """(id, eta_seconds) of the owner's scenes whose job has not ended (the concurrency quota)."""
+        q = select(SceneRow.id, SceneRow.eta_seconds).where(
+            SceneRow.owner == owner, SceneRow.deleted.is_(False), SceneRow.status.not_in(TERMINAL)
+        )
+        with self._session() as s:
+            return [(i, eta) for i, eta in s.execute(q)]
+
     def count_by_status(self) -> dict[str, int]:
         with self._session() as s:
             rows = s.execute(

@@ -16,6 +16,7 @@ from cmc.cameras import CameraFile, Cameras, camera_file_to_dict
 from cmc.datasets import Scene, synthetic_cameras, synthetic_scene
 
 SHARED_DIR = Path(os.environ.get("CMC_SHARED_DIR") or Path(__file__).resolve().parents[1].parent / "shared")
+REDIS_URL = os.environ.get("CMC_TEST_REDIS", "redis://127.0.0.1:6379/14")  # the real Redis of the tests
 
 
 def rotation(axis, angle: float) -> np.ndarray:

@@ -17,3 +17,10 @@ def test_committed_spec_matches_the_app() -> None:
     assert "multipart/form-data" in upload["requestBody"]["content"]
     assert {"202", "413", "415", "422"} <= set(upload["responses"])
     assert spec["components"]["securitySchemes"]["HTTPBearer"]["scheme"] == "bearer"
+    # the routes limited per API key list their 429, with Retry-After and the RateLimit fields
+    fields = {"Retry-After", "RateLimit-Limit", "RateLimit-Remaining", "RateLimit-Reset"}
+    for path in ("/v1/scenes", "/v1/scenes/{scene_id}/render", "/v1/scenes/{scene_id}/depth"):
+        too_many = paths[path]["post"]["responses"]["429"]
+        assert too_many["content"]["application/json"]["schema"] == {"$ref": "#/components/schemas/ErrorBody"}
+        assert set(too_many["headers"]) == fields, path
+    assert "429" not in paths["/v1/scenes/{scene_id}"]["get"]["responses"]  # status polls are not limited

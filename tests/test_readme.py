@@ -163,13 +163,19 @@ def test_arkit_example_is_accepted_by_the_cameras_parser() -> None:
     assert off_axis.max() < 1e-3
 
 
-def test_limits_table_gives_the_settings_defaults() -> None:
+def _table_rows(section: str) -> list[tuple[str, str]]:
+    """(setting names, default values) of a README limits table: `| what | settings | defaults | ... |`."""
+    return re.findall(r"^\|[^|]*\| (`CMC_\w+`(?: / `CMC_\w+`)?) \| ([^|]+?) \|", section, flags=re.M)
+
+
+@pytest.mark.parametrize("title, rows", [("### Upload limits", 7), ("### Quotas and rate limits", 3)])
+def test_limits_tables_give_the_settings_defaults(title: str, rows: int) -> None:
     defaults = Settings.model_construct()  # the defaults, not this environment's CMC_* values
-    section = README.split("### Upload limits", 1)[1].split("###", 1)[0]
-    rows = re.findall(r"^\|[^|]*\| (`CMC_\w+`(?: / `CMC_\w+`)?) \| ([^|]+?) \|", section, flags=re.M)
-    assert len(rows) == 7
-    for names, values in rows:
+    section = README.split(title, 1)[1].split("###", 1)[0]
+    assert len(_table_rows(section)) == rows
+    for names, values in _table_rows(section):
         fields = [n.strip("`").removeprefix("CMC_").lower() for n in names.split(" / ")]
         numbers = [float(v.split()[0]) for v in values.split(" / ")]
         assert numbers == [getattr(defaults, f) for f in fields], names
-    assert f"({defaults.max_request_bytes} by default" in section
+    if title == "### Upload limits":
+        assert f"({defaults.max_request_bytes} by default" in section

@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 import uvicorn
 from fastapi.testclient import TestClient
-from helpers import render_body, synthetic_upload
+from helpers import REDIS_URL, render_body, synthetic_upload
 from PIL import Image
 
 from cmc.baking import BakedScene
@@ -38,6 +38,8 @@ from cmc.video import path_cameras
 from service.api import negotiate
 from service.app import create_app
 from service.auth import key_digest
+from service.limits import MemoryLimiter, RedisLimiter
+from service.quotas import RECORD_HOLD_S
 from service.schemas import RenderCamera
 from service.settings import load_settings
 
@@ -335,7 +337,7 @@ def test_operations_endpoints(ready) -> None:
     assert 'cmc_http_requests_total{method="GET",route="/v1/scenes/{scene_id}",status="200"}' in text
 
 
-def _baked_ready_scene(app) -> tuple[str, dict]:
+def _baked_ready_scene(app, owner: str = "local") -> tuple[str, dict]:
     """A ready scene whose baked MPI comes from an untrained model (no job ran), and a camera."""
     from cmc.baking import bake
     from cmc.config import preset_config
@@ -343,7 +345,7 @@ def _baked_ready_scene(app) -> tuple[str, dict]:
     from cmc.training import Trainer
 
     svc = app.state.services
-    rec, _ = svc.store.create("local", {}, ["a.png", "b.png"], ["00.png", "01.png"], False)
+    rec, _ = svc.store.create(owner, {}, ["a.png", "b.png"], ["00.png", "01.png"], False)
     assert svc.store.claim(rec.id, "poses", "test", 60) is not None
     assert svc.store.advance(rec.id, "test", "done", "ready")
     scene = synthetic_scene(num_views=2, width=32, height=24)
@@ -627,6 +629,186 @@ def test_queue_outage_is_a_clean_503(api) -> None:
     r = client.post("/v1/scenes", files=parts, headers={"Idempotency-Key": "k"})
     assert r.status_code == 503 and r.json()["error"]["code"] == "queue_unavailable"
     assert client.get("/v1/scenes").json()["items"] == [] and stored_scenes(api.storage) == []
+
+
+# -- quotas and rate limits per API key ---------------------------------------------------------------
+
+KEY_A, KEY_B = {"Authorization": "Bearer key-a"}, {"Authorization": "Bearer key-b"}
+NO_SCENE = "/v1/scenes/0123456789abcdef0123456789abcdef"
+
+
+class Clock:
+    """Seconds that move only when a test says so (the limiter's clock)."""
+
+    def __init__(self) -> None:
+        self.t = 1_000_000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def quota_app(tmp: Path, limiter=None, queue=None, **limits):
+    """An app with API keys key-a and key-b, the given limits, a recording queue and (by default)
+    the in-memory limiter on a clock the test moves (``app.clock``)."""
+    clock = Clock()
+    settings = settings_for(tmp, api_keys="key-a,key-b", **limits)
+    app = create_app(settings, queue=queue or RecordingQueue(), limiter=limiter or MemoryLimiter(clock))
+    app.clock = clock  # type: ignore[attr-defined]
+    return app
+
+
+def rate_fields(r: httpx.Response) -> tuple[str, str, str] | None:
+    """(RateLimit-Limit, -Remaining, -Reset) of an answer, or None when it has none."""
+    if "ratelimit-limit" not in r.headers:
+        return None
+    return r.headers["ratelimit-limit"], r.headers["ratelimit-remaining"], r.headers["ratelimit-reset"]
+
+
+def assert_refused(r: httpx.Response, code: str, limit: str, maximum: int, retry_after: int) -> None:
+    assert r.status_code == 429, r.text
+    assert r.json()["error"] == {
+        "code": code,
+        "message": r.json()["error"]["message"],
+        "details": {"limit": limit, "maximum": maximum, "retry_after": retry_after},
+    }
+    assert f"{maximum} " in r.json()["error"]["message"]
+    assert r.headers["retry-after"] == str(retry_after)
+    assert rate_fields(r) == (str(maximum), "0", str(retry_after))
+
+
+def test_quota_renders_per_second_per_key(tmp_path: Path) -> None:
+    app = quota_app(tmp_path, max_renders_per_second=3)
+    sid, camera = _baked_ready_scene(app, owner=key_digest("key-a")[:16])
+    client = TestClient(app)
+    ok = client.post(f"/v1/scenes/{sid}/render", json=camera, headers=KEY_A)
+    assert ok.status_code == 200 and rate_fields(ok) == ("3", "2", "1")
+    # counted when they arrive, whatever the answer; depth shares the limit with render
+    missing = client.post(f"{NO_SCENE}/render", json=camera, headers=KEY_A)
+    assert missing.status_code == 404 and rate_fields(missing) == ("3", "1", "1")
+    assert client.post(f"/v1/scenes/{sid}/depth", json=camera, headers=KEY_A).status_code == 200
+    refused = client.post(f"/v1/scenes/{sid}/render", json=camera, headers=KEY_A)
+    assert_refused(refused, "render_rate_limited", "renders_per_second", 3, 1)
+    depth = client.post(f"/v1/scenes/{sid}/depth", json=camera, headers=KEY_A)
+    assert_refused(depth, "render_rate_limited", "renders_per_second", 3, 1)
+    assert client.get(f"/v1/scenes/{sid}", headers=KEY_A).status_code == 200  # status polls are not limited
+    assert client.post(f"{NO_SCENE}/render", json=camera, headers=KEY_B).status_code == 404  # key-b: its own
+    app.clock.t += 1.0  # the second is over
+    again = client.post(f"/v1/scenes/{sid}/render", json=camera, headers=KEY_A)
+    assert again.status_code == 200 and rate_fields(again) == ("3", "2", "1")
+    text = client.get("/metrics").text
+    assert 'cmc_rate_limited_total{limit="renders_per_second"} 2.0' in text
+    assert 'cmc_rate_limited_total{limit="concurrent_jobs"} 0.0' in text
+    assert 'cmc_http_requests_total{method="POST",route="/v1/scenes/{scene_id}/render",status="429"} 1.0' in text
+
+
+def test_quota_concurrent_jobs_per_key(tmp_path: Path) -> None:
+    app = quota_app(tmp_path, max_concurrent_jobs=2)
+    client, store = TestClient(app), app.state.services.store
+    parts, _, _ = synthetic_upload()
+    first = client.post("/v1/scenes", files=parts, headers={**KEY_A, "Idempotency-Key": "first"})
+    # the limit closest to refusing: 1 of 2 unfinished jobs left (jobs per day: 99 of 100)
+    assert first.status_code == 202 and rate_fields(first) == ("2", "1", "60")
+    bad = client.post("/v1/scenes", files=_replace(parts, 0, "a.jpg", b"not an image"), headers=KEY_A)
+    assert bad.status_code == 415 and rate_fields(bad) is None  # a refused upload gives its place back
+    second = client.post("/v1/scenes", files=parts, headers=KEY_A)
+    assert second.status_code == 202 and rate_fields(second) == ("2", "0", "60")
+    # no job has an ETA yet: Retry-After is a minute; then the shortest ETA of the key's jobs
+    refused = client.post("/v1/scenes", files=parts, headers=KEY_A)
+    assert_refused(refused, "too_many_concurrent_jobs", "concurrent_jobs", 2, 60)
+    sid = second.json()["id"]
+    assert store.claim(sid, "poses", "worker", 60) is not None
+    store.heartbeat(sid, "worker", 60, status="estimating_poses", eta_seconds=41.2)
+    third = client.post("/v1/scenes", files=parts, headers=KEY_A)
+    assert_refused(third, "too_many_concurrent_jobs", "concurrent_jobs", 2, 42)
+    assert len(app.state.services.queue.sent) == 2 and len(stored_scenes(tmp_path / "storage")) == 2
+    # a retry of an upload that made its scene is answered with it, not refused
+    replay = client.post("/v1/scenes", files=parts, headers={**KEY_A, "Idempotency-Key": "first"})
+    assert replay.status_code == 202 and replay.headers["idempotent-replayed"] == "true"
+    assert client.post("/v1/scenes", files=parts, headers=KEY_B).status_code == 202  # key-b: its own
+    # a job that ends frees its place (failed, ready or deleted) once the database is the only
+    # count of it: RECORD_HOLD_S after its upload
+    store.fail(sid, "training_failed", "test")
+    assert client.post("/v1/scenes", files=parts, headers=KEY_A).status_code == 429
+    app.clock.t += RECORD_HOLD_S
+    assert client.post("/v1/scenes", files=parts, headers=KEY_A).status_code == 202
+    assert client.post("/v1/scenes", files=parts, headers=KEY_A).status_code == 429
+    assert client.delete(f"/v1/scenes/{first.json()['id']}", headers=KEY_A).status_code == 204
+    assert client.post("/v1/scenes", files=parts, headers=KEY_A).status_code == 202
+    assert 'cmc_rate_limited_total{limit="concurrent_jobs"} 4.0' in client.get("/metrics").text
+
+
+def test_quota_jobs_per_day_per_key(tmp_path: Path) -> None:
+    app = quota_app(tmp_path, max_jobs_per_day=2, max_concurrent_jobs=0)
+    client = TestClient(app)
+    parts, _, _ = synthetic_upload()
+    one = client.post("/v1/scenes", files=parts, headers=KEY_A)
+    assert one.status_code == 202 and rate_fields(one) == ("2", "1", "86400")
+    app.clock.t += 3600
+    two = client.post("/v1/scenes", files=parts, headers=KEY_A)
+    assert two.status_code == 202 and rate_fields(two) == ("2", "0", "82800")  # the first leaves in 23 h
+    assert client.delete(f"/v1/scenes/{one.json()['id']}", headers=KEY_A).status_code == 204  # still counted
+    app.clock.t += 600
+    refused = client.post("/v1/scenes", files=parts, headers=KEY_A)
+    assert_refused(refused, "daily_job_quota_exceeded", "jobs_per_day", 2, 86400 - 3600 - 600)
+    assert client.post("/v1/scenes", files=parts, headers=KEY_B).status_code == 202
+    app.clock.t += 86400 - 3600 - 600  # 24 h after the first upload
+    three = client.post("/v1/scenes", files=parts, headers=KEY_A)
+    assert three.status_code == 202 and rate_fields(three) == ("2", "0", "3600")
+    assert 'cmc_rate_limited_total{limit="jobs_per_day"} 1.0' in client.get("/metrics").text
+
+
+def test_quota_refuses_an_upload_before_reading_its_photos(tmp_path: Path) -> None:
+    app = quota_app(tmp_path, max_concurrent_jobs=1)
+    parts, _, _ = synthetic_upload()
+    assert TestClient(app).post("/v1/scenes", files=parts, headers=KEY_A).status_code == 202
+    head = "POST /v1/scenes HTTP/1.1\nHost: 127.0.0.1\nAuthorization: Bearer key-a\n"
+    head += "Content-Type: multipart/form-data; boundary=b\nContent-Length: 80000000\n"
+    with live_server(app) as port:  # 80 MB announced, 100 bytes sent: the answer comes without the rest
+        status, body, seconds = raw_exchange(port, head, [b"--b\r\n" + b" " * 96])
+    assert status == 429 and body["error"]["code"] == "too_many_concurrent_jobs" and seconds < 1
+
+
+def test_quota_open_mode_is_unlimited(api) -> None:
+    client = api(max_concurrent_jobs=1, max_jobs_per_day=1, max_renders_per_second=1)  # no API keys
+    parts, _, _ = synthetic_upload()
+    uploads = [client.post("/v1/scenes", files=parts) for _ in range(3)]
+    assert [r.status_code for r in uploads] == [202] * 3 and not any(map(rate_fields, uploads))
+    camera = {"transform_matrix": np.eye(4).tolist(), "fl_x": 50, "w": 8, "h": 8}
+    renders = [client.post(f"{NO_SCENE}/render", json=camera) for _ in range(3)]
+    assert [r.status_code for r in renders] == [404] * 3 and not any(map(rate_fields, renders))
+
+
+def test_quota_in_redis_holds_across_api_replicas(tmp_path: Path, redis_prefix: str) -> None:
+    clock = Clock()
+    limits = dict(max_concurrent_jobs=2, max_renders_per_second=3)
+    # two API processes' worth of apps: one database and storage, one Redis, a limiter client each
+    replicas = [quota_app(tmp_path, RedisLimiter(REDIS_URL, prefix=redis_prefix, clock=clock), **limits) for _ in "ab"]
+    parts, _, _ = synthetic_upload()
+    camera = {"transform_matrix": np.eye(4).tolist(), "fl_x": 50, "w": 8, "h": 8}
+    with live_server(replicas[0]) as port_a, live_server(replicas[1]) as port_b:
+        clients = [httpx.Client(base_url=f"http://127.0.0.1:{p}", headers=KEY_A, timeout=30) for p in (port_a, port_b)]
+        # six uploads at once, three to each replica: exactly two jobs are made
+        with ThreadPoolExecutor(6) as pool:
+            answers = list(pool.map(lambda k: clients[k % 2].post("/v1/scenes", files=parts), range(6)))
+        assert sorted(r.status_code for r in answers) == [202, 202, 429, 429, 429, 429], [r.text for r in answers]
+        assert {r.json()["error"]["code"] for r in answers if r.status_code == 429} == {"too_many_concurrent_jobs"}
+        renders = [clients[k % 2].post(f"{NO_SCENE}/render", json=camera) for k in range(4)]
+        assert [r.status_code for r in renders] == [404, 404, 404, 429]
+        assert [rate_fields(r)[1] for r in renders] == ["2", "1", "0", "0"]
+        clock.t += 1.0
+        assert clients[1].post(f"{NO_SCENE}/render", json=camera).status_code == 404
+        for c in clients:
+            c.close()
+
+
+def test_quota_unreachable_redis_lets_requests_through(tmp_path: Path) -> None:
+    limiter = RedisLimiter("redis://127.0.0.1:1/0", timeout_s=0.2)
+    client = TestClient(quota_app(tmp_path, limiter, max_concurrent_jobs=1, max_renders_per_second=1))
+    parts, _, _ = synthetic_upload()
+    uploads = [client.post("/v1/scenes", files=parts, headers=KEY_A) for _ in range(2)]
+    assert [r.status_code for r in uploads] == [202, 202] and not any(map(rate_fields, uploads))
+    camera = {"transform_matrix": np.eye(4).tolist(), "fl_x": 50, "w": 8, "h": 8}
+    assert [client.post(f"{NO_SCENE}/render", json=camera, headers=KEY_A).status_code for _ in range(2)] == [404] * 2
 
 
 def test_negotiate() -> None:

@@ -69,7 +69,7 @@ class Deployment:
             "CMC_STORAGE_DIR": str(tmp / "storage"),
             "CMC_CPU_QUEUE": f"cpu-{run}",
             "CMC_GPU_QUEUE": f"gpu-{run}",
-            "CMC_API_KEYS": "integration-key",
+            "CMC_API_KEYS": f"integration-key-{run}",  # a key per run: its quotas in Redis start at zero
             "CMC_CHECKPOINT_EVERY": "5",
             "CMC_LEASE_SECONDS": "4",
             "CMC_HEARTBEAT_SECONDS": "0.5",
@@ -78,7 +78,7 @@ class Deployment:
         self.logs = tmp / "logs"
         self.logs.mkdir()
         self.procs: dict[str, subprocess.Popen] = {}
-        self.headers = {"Authorization": "Bearer integration-key"}
+        self.headers = {"Authorization": f"Bearer integration-key-{run}"}
         self.url = f"http://127.0.0.1:{self.port}"
 
     def start(self, name: str, args: list[str]) -> subprocess.Popen:
@@ -198,13 +198,15 @@ def test_upload_poll_render_and_depth_across_processes(deployment: Deployment) -
     parts, _, novel = synthetic_upload(steps=25)
     r = httpx.post(f"{d.url}/v1/scenes", files=parts, headers=d.headers, timeout=30)
     assert r.status_code == 202, r.text
+    # counted in Redis by the deployed API: 1 of its 4 unfinished jobs (the limit closest to refusing)
+    assert (r.headers["ratelimit-limit"], r.headers["ratelimit-remaining"]) == ("4", "3")
     sid = r.json()["id"]
     seen = set()
     body = d.wait(sid, lambda b: seen.add(b["status"]) or b["status"] in ("ready", "failed"), timeout=400)
     assert body["status"] == "ready", body
     assert "training" in seen
     render = httpx.post(f"{d.url}/v1/scenes/{sid}/render", json=render_body(novel), headers=d.headers, timeout=60)
-    assert render.status_code == 200
+    assert render.status_code == 200 and render.headers["ratelimit-limit"] == "10"
     gt_rgb, gt_depth = render_layers(DEFAULT_LAYERS, novel)
     rgb = np.asarray(Image.open(io.BytesIO(render.content)).convert("RGB"), dtype=np.float32) / 255
     assert psnr(rgb, gt_rgb[0]) > 25.0  # as in test_service_api (untrained: 23.5 dB, depth 29 %)
