@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import json
 import logging
 import time
 import uuid
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from functools import cache
@@ -66,6 +68,7 @@ class Services:
     renders: BakedCache
     metrics: Metrics
     render_queue: RenderQueue
+    intake: Executor  # checks of uploaded photos (service.app.INTAKE_THREADS)
 
 
 def _services(request: Request) -> Services:
@@ -262,7 +265,7 @@ async def create_scene(
                     raise APIError(409, "idempotency_conflict", "this Idempotency-Key was used for a different upload")
                 svc.storage.delete_scene(scene_id)
                 return _created(existing, replayed=True)
-        stored = await run_in_threadpool(check_images, upload, s)
+        stored = await asyncio.wrap_future(svc.intake.submit(check_images, upload, s))
         options = parse_options(upload, s)
         cameras = await run_in_threadpool(parse_cameras, upload, stored)
         if cameras is not None:

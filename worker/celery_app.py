@@ -18,6 +18,7 @@ import threading
 from celery import Celery
 from celery.signals import worker_ready, worker_shutting_down
 
+from cmc.images import DECODE_MEMORY
 from service.jobs import TASK_NAMES, CeleryJobQueue
 from service.settings import Settings, load_settings
 from service.storage import LocalStorage
@@ -51,6 +52,7 @@ def create_celery(settings: Settings) -> Celery:
 
 settings = load_settings(mode="celery")
 app = create_celery(settings)
+DECODE_MEMORY.capacity = settings.decode_memory_bytes  # photo decodes of pose estimation
 _ctx: JobContext | None = None  # one per worker process, made after the fork
 
 
