@@ -7,13 +7,17 @@ time (prefetch 1); Redis' visibility timeout is longer than the longest job, so 
 is never handed out twice while its worker lives. A worker that dies is detected sooner by the
 job lease in the database: every worker runs the reaper (``requeue_stale_jobs``) at start and
 every ``lease_seconds / 2``, and the next worker resumes from the last checkpoint. A message
-delivered twice is harmless: claiming a job in the database is atomic.
+delivered twice is harmless: claiming a job in the database is atomic. The same background
+thread sends the job messages that are due (``worker.pipeline.deliver``: the store's outbox)
+every ``DELIVER_EVERY_SECONDS``, so a message that could not be sent while Redis was down goes
+out as soon as it is back.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 
 from celery import Celery
 from celery.signals import worker_ready, worker_shutting_down
@@ -23,7 +27,7 @@ from service.jobs import TASK_NAMES, CeleryJobQueue
 from service.settings import Settings, load_settings
 from service.storage import LocalStorage
 from service.store import SceneStore
-from worker.pipeline import JobContext, requeue_stale_jobs, run_job, run_video
+from worker.pipeline import DELIVER_EVERY_SECONDS, JobContext, deliver, requeue_stale_jobs, run_job, run_video
 
 log = logging.getLogger("cmc.worker")
 
@@ -56,13 +60,18 @@ DECODE_MEMORY.capacity = settings.decode_memory_bytes  # photo decodes of pose e
 _ctx: JobContext | None = None  # one per worker process, made after the fork
 
 
+def new_context() -> JobContext:
+    queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue)
+    store = SceneStore(settings.resolved_database_url)
+    return JobContext(store, LocalStorage(settings.resolved_storage_dir), queue, settings)
+
+
 def context() -> JobContext:
     global _ctx
     if _ctx is None:
-        queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue)
-        store = SceneStore(settings.resolved_database_url)
-        _ctx = JobContext(store, LocalStorage(settings.resolved_storage_dir), queue, settings)
+        _ctx = new_context()
     return _ctx
+
 
 
 # Hard limits are a backstop: the pipeline stops a phase at its own (soft) limit first, cleanly.
@@ -81,30 +90,33 @@ def video_task(scene_id: str, path: str) -> str:
     return run_video(context(), scene_id, path)
 
 
-def _reaper(stop: threading.Event) -> None:
-    ctx = JobContext(
-        SceneStore(settings.resolved_database_url),
-        LocalStorage(settings.resolved_storage_dir),
-        CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue),
-        settings,
-    )
+# -- background: the reaper and the outbox's sender (main process) --------------------------------
+
+
+def _background(stop: threading.Event) -> None:
+    ctx = new_context()
+    next_reap = 0.0
     while True:
         try:
-            requeue_stale_jobs(ctx)
+            if time.monotonic() >= next_reap:
+                next_reap = time.monotonic() + settings.lease_seconds / 2
+                requeue_stale_jobs(ctx)
+            deliver(ctx)
         except Exception:
-            log.warning("reaper pass failed", exc_info=True)
-        if stop.wait(settings.lease_seconds / 2):
+            log.warning("background pass failed", exc_info=True)
+        if stop.wait(DELIVER_EVERY_SECONDS):
             return
 
 
-_reaper_stop = threading.Event()
+_background_stop = threading.Event()
 
 
 @worker_ready.connect
-def _start_reaper(**_: object) -> None:
-    threading.Thread(target=_reaper, args=(_reaper_stop,), name="cmc-reaper", daemon=True).start()
+def _start_background(**_: object) -> None:
+    threading.Thread(target=_background, args=(_background_stop,), name="cmc-background", daemon=True).start()
+
 
 
 @worker_shutting_down.connect
-def _stop_reaper(**_: object) -> None:
-    _reaper_stop.set()
+def _stop_background(**_: object) -> None:
+    _background_stop.set()
