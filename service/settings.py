@@ -60,6 +60,12 @@ class Settings(BaseSettings):
     device: str = Field("auto", description="torch device for training: auto, cpu, cuda, cuda:N")
     max_steps: int = Field(50_000, ge=1, description="largest 'steps' option accepted")
     checkpoint_every: int = Field(0, ge=0, description="training steps between checkpoints; 0: the preset's")
+    checkpoint_seconds: float = Field(
+        60.0,
+        gt=0,
+        description="seconds of training between checkpoints at most (besides every checkpoint_every steps): "
+        "a worker killed without warning loses no more than this",
+    )
     lease_seconds: float = Field(60.0, gt=0, description="a job whose worker is silent this long is re-queued")
     heartbeat_seconds: float = Field(1.0, gt=0, description="how often a running job reports and checks cancel")
     requeue_after_seconds: float = Field(

@@ -346,7 +346,13 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
         hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s + bake_cost * step_s, 1))
 
     try:
-        trainer.fit(on_progress=on_progress, should_stop=hb.should_stop, checkpoint_path=ckpt, resume=False)
+        trainer.fit(
+            on_progress=on_progress,
+            should_stop=hb.should_stop,
+            checkpoint_path=ckpt,
+            resume=False,
+            checkpoint_seconds=s.checkpoint_seconds,
+        )
     except TrainingCancelled:
         raise JobStopped(hb.reason or "cancelled") from None
     except FloatingPointError as e:
