@@ -11,14 +11,24 @@ delivered twice is harmless: claiming a job in the database is atomic. The same 
 thread sends the job messages that are due (``worker.pipeline.deliver``: the store's outbox)
 every ``DELIVER_EVERY_SECONDS``, so a message that could not be sent while Redis was down goes
 out as soon as it is back.
+
+Shutdown: a warm shutdown (SIGTERM to the main process, what ``docker stop`` sends) is forwarded
+to the pool's processes as SIGTERM; a pool process running a job stops it at the next training
+step (or COLMAP checkpoint), writes the checkpoint and hands the job on (its message is due
+again), so the main process exits within seconds and the next worker resumes from that step.
+A pool process with no job exits on SIGTERM as before.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import signal
 import threading
 import time
+from collections.abc import Callable
 
+import billiard.process
 from celery import Celery
 from celery.signals import worker_ready, worker_shutting_down
 
@@ -58,12 +68,13 @@ settings = load_settings(mode="celery")
 app = create_celery(settings)
 DECODE_MEMORY.capacity = settings.decode_memory_bytes  # photo decodes of pose estimation
 _ctx: JobContext | None = None  # one per worker process, made after the fork
+_shutdown = threading.Event()  # set: the job running in this process checkpoints and stops
 
 
 def new_context() -> JobContext:
     queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue)
     store = SceneStore(settings.resolved_database_url)
-    return JobContext(store, LocalStorage(settings.resolved_storage_dir), queue, settings)
+    return JobContext(store, LocalStorage(settings.resolved_storage_dir), queue, settings, shutdown=_shutdown)
 
 
 def context() -> JobContext:
@@ -73,16 +84,30 @@ def context() -> JobContext:
     return _ctx
 
 
+def _running(work: Callable[[], str]) -> str:
+    """Run a job; in a prefork pool process, SIGTERM meanwhile stops it cleanly (``_shutdown``)
+    instead of ending the process (billiard's handler, put back after)."""
+    in_pool = billiard.process.current_process().name != "MainProcess"
+    previous = None
+    if in_pool and threading.current_thread() is threading.main_thread():
+        _shutdown.clear()  # a stop of an earlier job (e.g. billiard's hard time limit) is not this one's
+        previous = signal.signal(signal.SIGTERM, lambda *_: _shutdown.set())
+    try:
+        return work()
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
 
 # Hard limits are a backstop: the pipeline stops a phase at its own (soft) limit first, cleanly.
 @app.task(name=TASK_NAMES["poses"], time_limit=settings.poses_time_limit + 300)
 def poses_task(scene_id: str) -> str:
-    return run_job(context(), scene_id, "poses")
+    return _running(lambda: run_job(context(), scene_id, "poses"))
 
 
 @app.task(name=TASK_NAMES["train"], time_limit=settings.train_time_limit + 300)
 def train_task(scene_id: str) -> str:
-    return run_job(context(), scene_id, "train")
+    return _running(lambda: run_job(context(), scene_id, "train"))
 
 
 @app.task(name=TASK_NAMES["video"], time_limit=3600)
@@ -116,7 +141,18 @@ def _start_background(**_: object) -> None:
     threading.Thread(target=_background, args=(_background_stop,), name="cmc-background", daemon=True).start()
 
 
+# -- shutdown: forwarded to the job ---------------------------------------------------------------
+
 
 @worker_shutting_down.connect
-def _stop_background(**_: object) -> None:
+def _on_shutdown(**_: object) -> None:
+    """Main process, warm or cold shutdown: stop the background thread, and the running jobs:
+    this process's own (solo and thread pools) and, by SIGTERM, the prefork pool's."""
     _background_stop.set()
+    _shutdown.set()
+    for child in billiard.process.active_children():
+        try:
+            os.kill(child.pid, signal.SIGTERM)
+        except (ProcessLookupError, TypeError):  # gone already, or not started
+            pass
+

@@ -12,7 +12,9 @@ A job runs in two phases, each a separate task so GPU workers only train and bak
 While a phase runs, a heartbeat thread renews the job's lease, writes progress to the scene
 record and reads the cancel flag every ``heartbeat_seconds``, so DELETE stops a job within
 seconds; the phase's time limit is enforced by the same thread. Work stops cooperatively at
-the next training step (or COLMAP checkpoint), after a checkpoint is written.
+the next training step (or COLMAP checkpoint), after a checkpoint is written. A process that
+shuts down (``JobContext.shutdown``) stops its job the same way at once and hands it on: the
+job's message is due again.
 
 Messages to the queue go through the store's outbox (:func:`deliver`): the statement that makes
 a message necessary records it as due, and it is cleared once the broker took it. A message the
@@ -110,6 +112,8 @@ class _Heartbeat:
         self._beat()
 
     def should_stop(self) -> bool:
+        if self.ctx.shutdown.is_set():  # at once, not at the next beat
+            self._halt("shutdown")
         return self._stop.is_set()
 
     def check(self) -> None:
@@ -171,7 +175,11 @@ def run_job(ctx: JobContext, scene_id: str, phase: Phase) -> str:
             elif hb.reason == "time_limit":
                 ctx.store.fail(scene_id, "time_limit_exceeded", f"{phase} took longer than {limit:.0f} s")
                 outcome = "failed"
-            else:  # cancelled; or lease lost / shutting down: someone (or the next start) resumes it
+            elif hb.reason == "shutdown":  # checkpointed: the next worker (or start) resumes it
+                ctx.store.release(scene_id, ctx.worker_id, resend=True, detail=WAITING)
+                deliver(ctx, scene_id)
+                outcome = "stopped"
+            else:  # cancelled; or lease lost: the reaper re-queued it, or another worker has it
                 ctx.store.release(scene_id, ctx.worker_id)
                 outcome = "cancelled" if hb.reason == "cancelled" else "stopped"
     after = ctx.store.get(scene_id, include_deleted=True)
