@@ -367,7 +367,8 @@ def hardening_section() -> list[str]:
                 "(the issue's 1.5 GB). Decodes wait until their estimate fits in `CMC_DECODE_MEMORY_BYTES`"
                 + (f" ({budget / 2**20:.0f} MiB)" if budget else "")
                 + " and one larger runs alone, so the peak is about idle + the largest decode however many "
-                "uploads arrive together; they wait their turn instead (the time column).\n"
+                "uploads arrive together; they wait their turn instead (the time column; times of the runs "
+                "before and after were taken at different loads of the shared CPU and compare only roughly).\n"
             )
     stop, stop_before = load("stop_time.json"), load("stop_time_before.json")
     if stop:
