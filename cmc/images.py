@@ -13,13 +13,16 @@ name. Everything unusable raises
 
 from __future__ import annotations
 
+import ctypes
 import math
+import threading
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from PIL import ExifTags, Image, ImageOps, UnidentifiedImageError
+from PIL import ExifTags, Image, UnidentifiedImageError
 
 from cmc.datasets import SceneError
 
@@ -155,7 +158,9 @@ def read_photo_info(path: str | Path, max_pixels: int = MAX_PIXELS) -> PhotoInfo
     """
     path = Path(path)
     with _open(path, max_pixels) as im:
-        exif = im.getexif()
+        # Pillow's PNG reader decodes the whole image to look for EXIF after the pixels; only
+        # the EXIF before them is read here (an upload check must not decode at full size).
+        exif = Image.Image.getexif(im) if im.format == "PNG" else im.getexif()
         orientation = int(exif.get(_T.Orientation, 1) or 1)
         w, h = im.size
         focal, source = exif_focal_px(exif, w, h)
@@ -174,10 +179,87 @@ def resized_size(width: int, height: int, long_side: int) -> tuple[int, int]:
     return max(1, round(width * s)), max(1, round(height * s))
 
 
+class MemoryBudget:
+    """Bytes that decodes in this process may hold at once: :meth:`reserve` waits until the
+    request fits beside those running (a request larger than the whole budget runs alone)."""
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self.in_use = 0
+        self._cond = threading.Condition()
+
+    @contextmanager
+    def reserve(self, nbytes: int) -> Iterator[None]:
+        """Hold ``nbytes`` of the budget while the block runs; free what it allocated by its end."""
+        with self._cond:
+            self._cond.wait_for(lambda: self.in_use == 0 or self.in_use + nbytes <= self.capacity)
+            self.in_use += nbytes
+        try:
+            yield
+        finally:
+            _give_back_freed_memory()
+            with self._cond:
+                self.in_use -= nbytes
+                self._cond.notify_all()
+
+
+def _libc_malloc_trim() -> Callable[[int], int] | None:
+    try:
+        return ctypes.CDLL(None).malloc_trim  # glibc
+    except (AttributeError, OSError, TypeError):  # pragma: no cover - other C libraries
+        return None
+
+
+_MALLOC_TRIM = _libc_malloc_trim()
+
+
+def _give_back_freed_memory() -> None:
+    """Return the heap memory freed by this process to the system. glibc keeps what a thread
+    freed in that thread's own arena, so without this each thread that ever decoded a large
+    photo would keep its size resident, and the next decode on another thread would add to it."""
+    if _MALLOC_TRIM is not None:
+        _MALLOC_TRIM(0)
+
+
+# Every decode of :func:`load_resized` in this process (upload checks, pose estimation) draws on
+# this budget; the service sets its size from ``CMC_DECODE_MEMORY_BYTES``.
+DECODE_MEMORY = MemoryBudget(512 << 20)
+
+_TRANSPOSE = {
+    2: Image.Transpose.FLIP_LEFT_RIGHT,
+    3: Image.Transpose.ROTATE_180,
+    4: Image.Transpose.FLIP_TOP_BOTTOM,
+    5: Image.Transpose.TRANSPOSE,
+    6: Image.Transpose.ROTATE_270,
+    7: Image.Transpose.TRANSVERSE,
+    8: Image.Transpose.ROTATE_90,
+}
+
+
+def decode_bytes(im: Image.Image, full_size: tuple[int, int]) -> int:
+    """Peak bytes :func:`load_resized` holds while it decodes the opened image ``im`` (after any
+    JPEG draft; ``full_size`` is the size before it): the pixels as Pillow stores them, an RGB
+    copy for modes other than RGB and greyscale, the codec's own buffers, and 8 MiB for tables
+    and the resized copies. WebP is decoded through an animation decoder that keeps its canvas,
+    frame and output (12 bytes per pixel), HEIC through libheif's output (4 bytes per pixel);
+    progressive JPEGs keep every DCT coefficient of the full-size image (2 bytes per sample, 3
+    samples per pixel at most). ``tests/test_images.py`` measures that no format exceeds it."""
+    w, h = im.size
+    stored = 1 if im.mode in ("1", "L", "P") else 2 if im.mode.startswith("I;16") else 4
+    per_pixel = stored + (0 if im.mode in ("RGB", "L") else 4)
+    codec = {"WEBP": 12, "HEIF": 4}.get(im.format or "", 0) * w * h
+    if im.format == "JPEG" and (im.info.get("progressive") or im.info.get("progression")):
+        codec = 6 * full_size[0] * full_size[1]
+    return per_pixel * w * h + codec + (8 << 20)
+
+
 def load_resized(info: PhotoInfo, sizes: Sequence[tuple[int, int]], max_pixels: int = MAX_PIXELS) -> list[Image.Image]:
     """Decode a photo once: upright (EXIF orientation applied), RGB, resized to each of ``sizes``.
 
-    JPEGs are decoded at a reduced DCT scale when the largest requested size allows it.
+    JPEGs are decoded at a reduced DCT scale when the largest requested size allows it. The
+    decoded image is resized before it is turned upright, so it is held once (plus an RGB copy
+    for palette, alpha and 16-bit images); the decode waits for its :func:`decode_bytes` in
+    :data:`DECODE_MEMORY`, which bounds the memory of concurrent decodes.
 
     Args:
         info: from :func:`read_photo_info`.
@@ -187,18 +269,30 @@ def load_resized(info: PhotoInfo, sizes: Sequence[tuple[int, int]], max_pixels: 
     Raises:
         SceneError: the file cannot be decoded (e.g. a truncated upload).
     """
+    transpose = _TRANSPOSE.get(info.orientation)
+    swap = info.orientation in (5, 6, 7, 8)  # sizes are upright; the file is stored turned by 90 degrees
     with _open(info.path, max_pixels) as im:
+        full_size = im.size
         try:
             if im.format == "JPEG":  # draft keeps the decoded size >= the requested one
                 s = max(max(wh) for wh in sizes) / max(info.width, info.height)
                 im.draft("RGB", (math.ceil(im.size[0] * s), math.ceil(im.size[1] * s)))
-            im.load()
-            upright = ImageOps.exif_transpose(im).convert("RGB")
+            with DECODE_MEMORY.reserve(decode_bytes(im, full_size)):
+                im.load()
+                full = im if im.mode in ("RGB", "L") else im.convert("RGB")  # LANCZOS needs RGB or L
+                if full is not im:
+                    im.close()  # frees the decoded pixels now, not when the RGB copy is done with
+                out = []
+                for w, h in sizes:
+                    stored = (h, w) if swap else (w, h)
+                    small = full.copy() if full.size == stored else full.resize(stored, Image.Resampling.LANCZOS)
+                    small = small.convert("RGB") if small.mode != "RGB" else small
+                    out.append(small if transpose is None else small.transpose(transpose))
+                full.close()
+                im.close()  # the reservation ends with these pixels given back (MemoryBudget.reserve)
         except (OSError, ValueError, SyntaxError) as e:
             raise SceneError(f"cannot decode {info.path.name} (damaged or truncated file?): {e}") from None
-    return [
-        upright if upright.size == tuple(wh) else upright.resize(tuple(wh), Image.Resampling.LANCZOS) for wh in sizes
-    ]
+    return out
 
 
 def save_png(image: Image.Image, path: Path, fast: bool = False) -> None:

@@ -207,15 +207,20 @@ class Trainer:
         should_stop: Callable[[], bool] | None = None,
         checkpoint_path: str | Path | None = None,
         resume: bool = True,
+        checkpoint_seconds: float | None = 60.0,
     ) -> TrainResult:
         """Train to ``cfg.steps``.
 
         With ``checkpoint_path``: resume from it when it exists (and ``resume``), write it every
-        ``cfg.checkpoint_every`` steps, at the end, and before raising TrainingCancelled.
+        ``cfg.checkpoint_every`` steps and after the first step that ends ``checkpoint_seconds``
+        or more after the last checkpoint (or the start), at the end, and before raising
+        TrainingCancelled. The time bound is what a process killed without warning (a container
+        stopped past its grace period, a lost machine) loses; it is not part of the
+        configuration, so changing it keeps checkpoints usable.
         """
         if checkpoint_path is not None and resume and Path(checkpoint_path).exists():
             self.load_checkpoint(checkpoint_path)
-        t0 = t_last = time.perf_counter()
+        t0 = t_last = t_saved = time.perf_counter()
         eta = TrainingETA.for_config(self.cfg, len(self.scene))
         history = []
         while self.step < self.cfg.steps:
@@ -225,9 +230,11 @@ class Trainer:
                 raise TrainingCancelled(f"cancelled at step {self.step}")
             losses = self.train_step()
             history.append(losses)
-            if checkpoint_path is not None and self.step % self.cfg.checkpoint_every == 0:
-                self.save_checkpoint(checkpoint_path)
             now = time.perf_counter()
+            due = checkpoint_seconds is not None and now - t_saved >= checkpoint_seconds
+            if checkpoint_path is not None and (self.step % self.cfg.checkpoint_every == 0 or due):
+                self.save_checkpoint(checkpoint_path)
+                t_saved = now
             eta.record(self.step - 1, now - t_last)
             t_last = now
             if on_progress is not None:

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import json
 import logging
 import time
 import uuid
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from functools import cache, partial
@@ -72,6 +74,7 @@ class Services:
     metrics: Metrics
     render_queue: RenderQueue
     quotas: Quotas
+    intake: Executor  # checks of uploaded photos (service.app.INTAKE_THREADS)
 
 
 def _services(request: Request) -> Services:
@@ -339,7 +342,7 @@ async def _create_scene(
                     raise APIError(409, "idempotency_conflict", "this Idempotency-Key was used for a different upload")
                 svc.storage.delete_scene(scene_id)
                 return _created(existing, replayed=True)
-        stored = await run_in_threadpool(check_images, upload, s)
+        stored = await asyncio.wrap_future(svc.intake.submit(check_images, upload, s))
         options = parse_options(upload, s)
         callback_url = await run_in_threadpool(parse_callback_url, upload, s)
         cameras = await run_in_threadpool(parse_cameras, upload, stored)

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import logging
 from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
+from cmc.images import DECODE_MEMORY
 from service.api import Services, router
 from service.auth import KeyRing
 from service.errors import install_error_handlers
@@ -26,6 +28,10 @@ from service.storage import LocalStorage
 from service.store import SceneStore
 
 log = logging.getLogger("cmc.api")
+
+# Threads that check uploaded photos (decodes wait there for DECODE_MEMORY), apart from the thread
+# pool of the other routes, so uploads waiting for memory never hold up status polls or probes.
+INTAKE_THREADS = 4
 
 DESCRIPTION = """Three photos of a scene in, a navigable 3D view out.
 
@@ -61,6 +67,8 @@ def create_app(
         limiter = RedisLimiter(settings.broker_url) if settings.mode == "celery" else MemoryLimiter()
     quotas = Quotas(settings, limiter, not keys.open, lambda limit: metrics.rate_limited.labels(limit).inc())
     render_queue = RenderQueue(settings.render_concurrency, settings.render_queue)
+    DECODE_MEMORY.capacity = settings.decode_memory_bytes  # this process's photo decodes, jobs' included
+    intake = ThreadPoolExecutor(INTAKE_THREADS, thread_name_prefix="cmc-intake")
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
@@ -76,11 +84,14 @@ def create_app(
             render_queue.close()
             if isinstance(limiter, RedisLimiter):
                 limiter.close()
+            intake.shutdown(wait=False, cancel_futures=True)
             store.close()
 
     app = FastAPI(title="CMC reconstruction service", version="1.0.0", description=DESCRIPTION, lifespan=lifespan)
     renders = BakedCache(storage, settings.render_cache_bytes)
-    app.state.services = Services(settings, store, storage, queue, keys, renders, metrics, render_queue, quotas)
+    app.state.services = Services(
+        settings, store, storage, queue, keys, renders, metrics, render_queue, quotas, intake
+    )
     install_error_handlers(app)
     app.add_middleware(RateLimitHeaders)
     app.add_middleware(BodyGuard, keys=keys, max_json_bytes=settings.max_json_bytes, streamed={("POST", "/v1/scenes")})

@@ -40,7 +40,19 @@ class Settings(BaseSettings):
     min_images: int = Field(3, ge=2, le=20)
     max_images: int = Field(3, ge=2, le=20)
     max_image_bytes: int = Field(25 * MB, ge=1024, description="bytes per uploaded image")
-    max_image_pixels: int = Field(60_000_000, ge=1, description="pixels per uploaded image")
+    max_image_pixels: int = Field(
+        50_000_000,
+        ge=1,
+        description="pixels per uploaded image: a phone's 48 or 50 MP photo passes (8064 x 6048, 8160 x 6120); "
+        "larger ones (the 108 and 200 MP modes of some phones) must be scaled down by the app",
+    )
+    decode_memory_bytes: int = Field(
+        512 * MB,
+        ge=16 * MB,
+        description="bytes that photo decodes in one process may hold at once (upload checks, pose estimation): "
+        "a decode waits until its estimate fits (cmc.images.decode_bytes: 4 to 20 bytes per pixel by format and "
+        "mode, JPEGs decoded at reduced size); one larger than this runs alone",
+    )
     max_cameras_bytes: int = Field(1 * MB, ge=1024, description="bytes of the optional cameras / options parts")
     max_json_bytes: int = Field(64 * 1024, ge=1024, description="bytes of any other request body (a render camera)")
 
@@ -48,6 +60,12 @@ class Settings(BaseSettings):
     device: str = Field("auto", description="torch device for training: auto, cpu, cuda, cuda:N")
     max_steps: int = Field(50_000, ge=1, description="largest 'steps' option accepted")
     checkpoint_every: int = Field(0, ge=0, description="training steps between checkpoints; 0: the preset's")
+    checkpoint_seconds: float = Field(
+        60.0,
+        gt=0,
+        description="seconds of training between checkpoints at most (besides every checkpoint_every steps): "
+        "a worker killed without warning loses no more than this",
+    )
     lease_seconds: float = Field(60.0, gt=0, description="a job whose worker is silent this long is re-queued")
     heartbeat_seconds: float = Field(1.0, gt=0, description="how often a running job reports and checks cancel")
     requeue_after_seconds: float = Field(

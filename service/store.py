@@ -18,6 +18,14 @@ A worker *claims* a job for a phase by taking its lease (``lease_owner``, ``leas
 and renews it while it runs. A lease that expires means the worker died: the reaper
 (:meth:`SceneStore.stale_jobs`) hands the job to the queue again, and the next worker resumes
 from the last checkpoint.
+
+Outbox: a job's message to the queue is recorded as due (``send_at``) in the same statement
+that makes it necessary (the next phase, a re-queue, a worker stopping), and cleared once the
+broker took it (:meth:`SceneStore.message_sent`) or a worker claimed the job. A message that
+could not be sent stays due, so whoever sends due messages (``worker.pipeline.deliver``) sends
+it as soon as the broker is back, instead of the job waiting for the reaper's long timeout.
+
+New columns are added to an existing database when the store opens it (nullable, no default).
 """
 
 from __future__ import annotations
@@ -43,8 +51,10 @@ from sqlalchemy import (
     create_engine,
     event,
     func,
+    inspect,
     or_,
     select,
+    text,
     update,
 )
 from sqlalchemy.engine import make_url
@@ -91,6 +101,7 @@ class SceneRow(Base):
     enqueued_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     started_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+    send_at: Mapped[float | None] = mapped_column(Float, nullable=True, index=True)  # outbox: message due
 
 
 # Webhooks live in tables of their own (created beside an existing database's ``scenes``, which
@@ -172,6 +183,7 @@ class SceneRecord:
     enqueued_at: float | None
     started_at: float | None
     finished_at: float | None
+    send_at: float | None
 
     @staticmethod
     def of(row: SceneRow) -> SceneRecord:
@@ -204,6 +216,7 @@ class SceneStore:
         if url.startswith("sqlite"):
             event.listen(self.engine, "connect", _sqlite_pragmas)
         Base.metadata.create_all(self.engine)
+        _add_missing_columns(self.engine)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
 
     @contextmanager
@@ -362,7 +375,7 @@ class SceneStore:
                 SceneRow.cancel_requested.is_(False),
                 or_(SceneRow.lease_expires_at.is_(None), SceneRow.lease_expires_at < now),
             )
-            .values(lease_owner=worker, lease_expires_at=now + lease_seconds, updated_at=now)
+            .values(lease_owner=worker, lease_expires_at=now + lease_seconds, updated_at=now, send_at=None)
         )
         with self._session() as s:
             if s.execute(stmt).rowcount != 1:
@@ -386,7 +399,8 @@ class SceneStore:
         return Heartbeat(held, bool(cancel) if cancel is not None else True)
 
     def advance(self, scene_id: str, worker: str, phase: Phase, status: Status, **fields: Any) -> bool:
-        """Finish the held phase: move to ``phase``/``status``, drop the lease. False if not held."""
+        """Finish the held phase: move to ``phase``/``status``, drop the lease, and unless the job
+        ended, make the next phase's message due (the outbox). False if not held."""
         now = time.time()
         values: dict[str, Any] = dict(
             phase=phase, status=status, lease_owner=None, lease_expires_at=None, updated_at=now, **fields
@@ -394,7 +408,7 @@ class SceneStore:
         if status in TERMINAL:
             values["finished_at"] = now
         else:
-            values["enqueued_at"] = now
+            values.update(enqueued_at=now, send_at=now)
         stmt = (
             update(SceneRow)
             .where(SceneRow.id == scene_id, SceneRow.lease_owner == worker, SceneRow.status.not_in(TERMINAL))
@@ -406,14 +420,15 @@ class SceneStore:
                 _add_event(s, scene_id, f"scene.{status}", {"status": status}, now)
             return done
 
-    def release(self, scene_id: str, worker: str) -> None:
-        """Give the lease back without changing the phase (the job will be picked up again)."""
+    def release(self, scene_id: str, worker: str, resend: bool = False, **fields: Any) -> None:
+        """Give the lease back without changing the phase; with ``resend`` the job's message is
+        made due again (a worker stopping for shutdown hands its job to the next one)."""
+        now = time.time()
+        values: dict[str, Any] = dict(lease_owner=None, lease_expires_at=None, updated_at=now, **fields)
+        if resend:
+            values.update(enqueued_at=now, send_at=now)
         with self._session() as s:
-            s.execute(
-                update(SceneRow)
-                .where(SceneRow.id == scene_id, SceneRow.lease_owner == worker)
-                .values(lease_owner=None, lease_expires_at=None, updated_at=time.time())
-            )
+            s.execute(update(SceneRow).where(SceneRow.id == scene_id, SceneRow.lease_owner == worker).values(**values))
 
     def fail(self, scene_id: str, code: str, message: str) -> None:
         """Mark a job failed (whoever holds it); no-op when it already ended."""
@@ -458,9 +473,9 @@ class SceneStore:
         with self._session() as s:
             return [SceneRecord.of(r) for r in s.scalars(q.order_by(SceneRow.created_at))]
 
-    def requeue(self, scene: SceneRecord, max_attempts: int) -> bool:
-        """Drop an expired lease and count the attempt; fails the job after ``max_attempts``
-        lost workers. True when the caller should send the job to its queue again."""
+    def requeue(self, scene: SceneRecord, max_attempts: int, **fields: Any) -> bool:
+        """Drop an expired lease, count the attempt and make the job's message due; fails the job
+        after ``max_attempts`` lost workers. True when the job is to be sent again."""
         now = time.time()
         lost = scene.lease_owner is not None
         attempts = scene.attempts + (1 if lost else 0)
@@ -473,7 +488,15 @@ class SceneStore:
                     # unchanged since it was read: nobody claimed or renewed it meanwhile
                     SceneRow.updated_at == scene.updated_at,
                 )
-                .values(lease_owner=None, lease_expires_at=None, attempts=attempts, enqueued_at=now, updated_at=now)
+                .values(
+                    lease_owner=None,
+                    lease_expires_at=None,
+                    attempts=attempts,
+                    enqueued_at=now,
+                    send_at=now,
+                    updated_at=now,
+                    **fields,
+                )
             )
             if s.execute(stmt).rowcount != 1:
                 return False
@@ -558,6 +581,75 @@ class SceneStore:
             if status == "delivered":
                 row.delivered_at = now
 
+    # -- the outbox ---------------------------------------------------------------------------
+
+    def due_messages(self, scene_id: str | None = None) -> list[SceneRecord]:
+        """Unfinished jobs whose message is due (all, or the one scene's), oldest first."""
+        q = select(SceneRow).where(
+            SceneRow.send_at <= time.time(),
+            SceneRow.status.not_in(TERMINAL),
+            SceneRow.cancel_requested.is_(False),
+        )
+        if scene_id is not None:
+            q = q.where(SceneRow.id == scene_id)
+        with self._session() as s:
+            return [SceneRecord.of(r) for r in s.scalars(q.order_by(SceneRow.send_at))]
+
+    def take_message(self, scene: SceneRecord, retry_at: float) -> bool:
+        """Take a due message for sending: it falls due again at ``retry_at`` unless
+        :meth:`message_sent` clears it first. False when another sender took it (or it changed)."""
+        stmt = (
+            update(SceneRow)
+            .where(SceneRow.id == scene.id, SceneRow.send_at == scene.send_at, SceneRow.phase == scene.phase)
+            .values(send_at=retry_at)
+        )
+        with self._session() as s:
+            return s.execute(stmt).rowcount == 1
+
+    def message_sent(self, scene_id: str, taken: float, **fields: Any) -> None:
+        """The broker took the message taken with ``retry_at=taken``: nothing more to send (unless
+        it was made due again meanwhile). ``fields`` are written while no worker holds the job."""
+        with self._session() as s:
+            s.execute(update(SceneRow).where(SceneRow.id == scene_id, SceneRow.send_at == taken).values(send_at=None))
+            if fields:
+                self._set_while_waiting(s, scene_id, fields)
+
+    def message_failed(self, scene_id: str, **fields: Any) -> None:
+        """The broker could not be reached: the message stays due; ``fields`` (the detail the
+        client sees) are written while no worker holds the job."""
+        with self._session() as s:
+            self._set_while_waiting(s, scene_id, fields)
+
+    @staticmethod
+    def _set_while_waiting(s: Session, scene_id: str, fields: dict[str, Any]) -> None:
+        s.execute(
+            update(SceneRow)
+            .where(SceneRow.id == scene_id, SceneRow.lease_owner.is_(None), SceneRow.status.not_in(TERMINAL))
+            .values(updated_at=time.time(), **fields)
+        )
+
+
+def _add_missing_columns(engine: Any) -> None:
+    """Add the columns of :class:`SceneRow` that an existing ``scenes`` table lacks (all added
+    columns are nullable), so a database from an older release opens without a migration tool."""
+    have = {c["name"] for c in inspect(engine).get_columns(SceneRow.__tablename__)}
+    missing = [c for c in SceneRow.__table__.columns if c.name not in have]
+    with engine.begin() as conn:
+        for column in missing:
+            kind = column.type.compile(dialect=engine.dialect)
+            conn.execute(text(f'ALTER TABLE {SceneRow.__tablename__} ADD COLUMN "{column.name}" {kind}'))
+            for index in column.table.indexes:
+                if [c.name for c in index.columns] == [column.name]:
+                    index.create(conn, checkfirst=True)
+
+
+def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
+    cur = dbapi_connection.cursor()
+    cur.execute("PRAGMA journal_mode=WAL")  # readers do not block the writer (API + runner threads)
+    cur.execute("PRAGMA busy_timeout=30000")
+    cur.execute("PRAGMA synchronous=NORMAL")
+    cur.close()
+
 
 def _add_event(s: Session, scene_id: str, event: str, data: dict[str, Any], now: float) -> None:
     """In session ``s``: a pending delivery of ``event`` to the scene's callback URL, if any.
@@ -584,11 +676,3 @@ def _add_event(s: Session, scene_id: str, event: str, data: dict[str, Any], now:
             updated_at=now,
         )
     )
-
-
-def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
-    cur = dbapi_connection.cursor()
-    cur.execute("PRAGMA journal_mode=WAL")  # readers do not block the writer (API + runner threads)
-    cur.execute("PRAGMA busy_timeout=30000")
-    cur.execute("PRAGMA synchronous=NORMAL")
-    cur.close()

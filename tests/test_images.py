@@ -5,7 +5,11 @@ is skipped when the shared folder (``$CMC_SHARED_DIR`` or ``../shared``) is abse
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -211,3 +215,63 @@ def test_fern_exif_focal_matches_llff_calibration() -> None:
     assert isinstance(info, PhotoInfo)
     assert (info.width, info.height, info.device) == (4032, 3024, "Apple iPhone X")
     assert info.focal_px == pytest.approx(3260.5, rel=0.005)  # LLFF's COLMAP focal for these photos
+
+
+DECODE_PEAK = """
+import gc, json, sys
+from pathlib import Path
+import cmc.images as ci
+
+def resident():
+    fields = dict(line.split(":", 1) for line in Path("/proc/self/status").read_text().splitlines())
+    return int(fields["VmRSS"].split()[0]) * 1024, int(fields["VmHWM"].split()[0]) * 1024
+
+estimates = []
+estimate = ci.decode_bytes
+ci.decode_bytes = lambda im, full: estimates.append(estimate(im, full)) or estimates[-1]
+out = {}
+for path in sys.argv[1:]:
+    gc.collect()
+    ci._give_back_freed_memory()  # what the last photo's decoder freed late is not reused here
+    Path("/proc/self/clear_refs").write_text("5")  # the high-water mark starts again from here
+    before = resident()[0]
+    info = ci.read_photo_info(path)
+    ci.load_resized(info, [ci.resized_size(info.width, info.height, 64)])
+    out[Path(path).name] = [resident()[1] - before, estimates[-1]]
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="measures /proc (Linux)")
+def test_decoding_stays_within_its_memory_estimate(tmp_path: Path) -> None:
+    """What a decode holds at its peak (resident memory, measured) is within ``decode_bytes``,
+    the amount it reserves from the decode budget, for every format and the costly modes."""
+    w, h = 3000, 2000  # 6 MP: the fixed part of the estimate is small beside the pixels
+    colour = (40, 90, 160, 200)
+    photos = {
+        "rgb.png": (Image.new("RGB", (w, h), colour[:3]), {}),
+        "rgba.png": (Image.new("RGBA", (w, h), colour), {}),
+        "palette.png": (Image.new("RGB", (w, h), colour[:3]).convert("P"), {}),
+        "grey16.png": (Image.new("I;16", (w, h), 1000), {}),
+        "progressive444.jpg": (Image.new("RGB", (w, h), colour[:3]), {"progressive": True, "subsampling": 0}),
+        "baseline.jpg": (Image.new("RGB", (w, h), colour[:3]), {}),
+        "rgb.webp": (Image.new("RGB", (w, h), colour[:3]), {}),
+        "rgba.webp": (Image.new("RGBA", (w, h), colour), {}),
+    }
+    if HEIF_SUPPORTED:
+        photos["rgba.heic"] = (Image.new("RGBA", (w, h), colour), {"quality": 50})
+    for name, (im, options) in photos.items():
+        im.save(tmp_path / name, **options)
+    root = Path(__file__).resolve().parents[1]
+    run = subprocess.run(
+        [sys.executable, "-c", DECODE_PEAK, *(str(tmp_path / n) for n in photos)],
+        capture_output=True,
+        text=True,
+        cwd=root,
+        env={**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"},
+        timeout=300,
+    )
+    assert run.returncode == 0, run.stderr
+    for name, (peak, estimate) in json.loads(run.stdout).items():
+        print(f"{name}: peak {peak / 2**20:.0f} MiB, estimate {estimate / 2**20:.0f} MiB")
+        assert peak <= estimate, name

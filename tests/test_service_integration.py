@@ -249,3 +249,48 @@ def test_killed_worker_is_resumed_from_its_checkpoint(deployment: Deployment) ->
     resumed = stats["train"]["resumed_from_step"]
     assert resumed >= 5 and resumed <= killed_at * 40 + 1e-6, (resumed, killed_at)
     assert "re-queued" in d.log("gpu2") or "re-queued" in d.log("cpu")
+
+
+def test_docker_stop_of_the_gpu_worker_checkpoints_and_hands_the_job_on(deployment: Deployment) -> None:
+    """``docker stop`` sends SIGTERM to the worker's main process only (Celery's warm shutdown,
+    which waits for the running task). The worker forwards it to the job: within 10 s it has
+    written a checkpoint and exited, the job waits for a worker with its message sent again, and
+    the next worker resumes from that step. No step or time period writes a checkpoint here."""
+    import psycopg
+    import torch
+
+    d = deployment
+    d.env.update(CMC_CHECKPOINT_EVERY="100000", CMC_CHECKPOINT_SECONDS="3600")
+    d.start_all()
+    parts, _, _ = synthetic_upload(steps=3000)
+    sid = httpx.post(f"{d.url}/v1/scenes", files=parts, headers=d.headers, timeout=30).json()["id"]
+    ckpt = Path(d.env["CMC_STORAGE_DIR"]) / sid / "checkpoint.pt"
+    d.wait(sid, lambda b: b["status"] == "training" and b["progress"] > 0.005, timeout=300)
+    assert not ckpt.exists()
+    gpu = d.procs.pop("gpu")
+    t0 = time.time()
+    os.kill(gpu.pid, signal.SIGTERM)  # the main process, as docker stop does (not its group)
+    try:
+        gpu.wait(30)
+    except subprocess.TimeoutExpired:
+        d.procs["gpu"] = gpu  # killed by the fixture
+        raise AssertionError(f"the worker did not stop within 30 s:\n{d.log('gpu')}") from None
+    stopped_s = time.time() - t0
+    assert stopped_s <= 10, f"{stopped_s:.1f} s to stop"
+    step = torch.load(ckpt, weights_only=False)["step"]
+    assert 0 < step < 3000
+    body = d.status(sid)
+    assert (body["status"], body["detail"]) == ("training", "waiting for a worker")
+    d.start_worker("gpu2", "CMC_GPU_QUEUE")  # the deploy's new container
+    with psycopg.connect(d.env["CMC_DATABASE_URL"].replace("+psycopg", "")) as conn:
+        t0 = time.time()
+        while time.time() - t0 < 120:  # the first attempt's stats say resumed_from_step 0
+            (stats,) = conn.execute("select stats from scenes where id = %s", (sid,)).fetchone()
+            stats = stats if isinstance(stats, dict) else json.loads(stats)
+            if stats.get("train", {}).get("resumed_from_step") == step:
+                break
+            time.sleep(0.3)
+        else:
+            raise AssertionError(f"not resumed from step {step}: {stats}\n{d.log('gpu2')}")
+        (attempts,) = conn.execute("select attempts from scenes where id = %s", (sid,)).fetchone()
+    assert attempts == 0  # a clean stop is not a lost worker

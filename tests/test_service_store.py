@@ -91,6 +91,63 @@ def test_a_queued_job_whose_message_was_lost_is_sent_again(store: SceneStore) ->
     assert store.get(rec.id).attempts == 0
 
 
+def test_outbox_a_message_is_due_until_the_broker_took_it(store: SceneStore) -> None:
+    """Every change that needs a message makes it due in the same statement; a sender takes it
+    (one sender only), and it stays due until sent or the job is claimed."""
+    rec, _ = make(store)
+    assert store.due_messages() == []  # the API sends the first message itself
+    store.claim(rec.id, "poses", "w1", 30)
+    assert store.advance(rec.id, "w1", "train", "training", detail="waiting for a worker")
+    due = store.due_messages()
+    assert [(d.id, d.phase) for d in due] == [(rec.id, "train")]
+    assert store.due_messages(scene_id="other") == []
+    retry_at = time.time() + 30
+    assert store.take_message(due[0], retry_at) is True
+    assert store.take_message(due[0], retry_at + 1) is False  # another sender took it first
+    assert store.due_messages() == []  # taken: due again at retry_at unless sent
+    store.message_failed(rec.id, detail="queue down")
+    assert store.get(rec.id).detail == "queue down" and store.get(rec.id).send_at == retry_at
+    store.message_sent(rec.id, retry_at, detail="waiting for a worker")
+    after = store.get(rec.id)
+    assert after.send_at is None and after.detail == "waiting for a worker"
+    # a worker stopping for shutdown hands the job on; claiming it clears the message
+    store.claim(rec.id, "train", "w2", 30)
+    store.heartbeat(rec.id, "w2", 30, detail="training")
+    store.message_failed(rec.id, detail="queue down")  # never over a running job's detail
+    assert store.get(rec.id).detail == "training"
+    store.release(rec.id, "w2", resend=True, detail="waiting for a worker")
+    assert [d.id for d in store.due_messages()] == [rec.id]
+    assert store.claim(rec.id, "train", "w3", 0.05) is not None and store.due_messages() == []
+    time.sleep(0.1)  # w3 died: the reaper's re-queue makes it due again
+    assert store.requeue(store.stale_jobs(3600)[0], max_attempts=3, detail="waiting for a worker")
+    assert [d.id for d in store.due_messages()] == [rec.id]
+    store.delete(rec.id)
+    assert store.due_messages() == []  # nothing is sent for a cancelled job
+
+
+def test_an_older_database_gets_the_new_columns(store: SceneStore) -> None:
+    """A database made before a column existed (here: the outbox's send_at) opens with it added
+    and its rows kept."""
+    from sqlalchemy import inspect, text
+
+    rec, _ = make(store)
+    with store.engine.begin() as conn:
+        conn.execute(text("DROP INDEX ix_scenes_send_at"))
+        conn.execute(text("ALTER TABLE scenes DROP COLUMN send_at"))
+    url = store.engine.url.render_as_string(hide_password=False)
+    store.close()
+    reopened = SceneStore(url)
+    try:
+        assert "send_at" in {c["name"] for c in inspect(reopened.engine).get_columns("scenes")}
+        assert "ix_scenes_send_at" in {i["name"] for i in inspect(reopened.engine).get_indexes("scenes")}
+        assert reopened.get(rec.id).send_at is None and reopened.get(rec.id).owner == "o"
+        reopened.claim(rec.id, "poses", "w1", 30)
+        assert reopened.advance(rec.id, "w1", "train", "training")
+        assert [d.id for d in reopened.due_messages()] == [rec.id]
+    finally:
+        reopened.close()
+
+
 def test_delete_leaves_a_tombstone_that_stops_the_worker(store: SceneStore) -> None:
     rec, _ = make(store)
     store.claim(rec.id, "poses", "w1", 30)

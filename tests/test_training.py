@@ -75,6 +75,26 @@ def test_resume_from_checkpoint_is_exact(scene, tmp_path, preset):
         torch.testing.assert_close(a, b)
 
 
+@pytest.mark.parametrize("seconds, saved_at", [(0.0, [1, 2, 3, 4, 5, 6]), (3600.0, [])])
+def test_checkpoints_on_time_as_well_as_on_steps(scene, tmp_path, seconds, saved_at):
+    """A checkpoint is also written after the first step that ends ``checkpoint_seconds`` after
+    the last one, however far the step period (a process killed without warning loses at most
+    that much training); the time bound does not change the configuration the checkpoint holds."""
+    ckpt = tmp_path / "ckpt.pt"
+    seen = []
+
+    def on_progress(p):
+        if ckpt.exists():
+            seen.append(torch.load(ckpt, weights_only=False)["step"])
+            ckpt.unlink()
+
+    cfg = tiny(steps=6, checkpoint_every=1000)
+    Trainer(scene, cfg).fit(on_progress=on_progress, checkpoint_path=ckpt, checkpoint_seconds=seconds)
+    assert seen == saved_at
+    assert torch.load(ckpt, weights_only=False)["step"] == 6  # and at the end
+    Trainer(scene, cfg).load_checkpoint(ckpt)
+
+
 def test_same_seed_same_result_other_seed_differs(scene):
     a, b, c = (Trainer(scene, tiny(steps=3, seed=s)) for s in (1, 1, 2))
     for t in (a, b, c):

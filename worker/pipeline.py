@@ -12,7 +12,15 @@ A job runs in two phases, each a separate task so GPU workers only train and bak
 While a phase runs, a heartbeat thread renews the job's lease, writes progress to the scene
 record and reads the cancel flag every ``heartbeat_seconds``, so DELETE stops a job within
 seconds; the phase's time limit is enforced by the same thread. Work stops cooperatively at
-the next training step (or COLMAP checkpoint), after a checkpoint is written.
+the next training step (or COLMAP checkpoint), after a checkpoint is written. A process that
+shuts down (``JobContext.shutdown``) stops its job the same way at once and hands it on: the
+job's message is due again.
+
+Messages to the queue go through the store's outbox (:func:`deliver`): the statement that makes
+a message necessary records it as due, and it is cleared once the broker took it. A message the
+broker did not take stays due; the Celery workers send due messages every
+``DELIVER_EVERY_SECONDS``, so a Redis outage delays a job by the outage, not by the reaper's
+``requeue_after_seconds``.
 """
 
 from __future__ import annotations
@@ -38,6 +46,11 @@ from service.store import Phase, SceneRecord, SceneStore
 log = logging.getLogger("cmc.worker")
 
 StopReason = Literal["cancelled", "lease_lost", "time_limit", "shutdown"]
+
+WAITING = "waiting for a worker"  # the status detail of a job between workers
+QUEUE_DOWN = "waiting for a worker: the job queue cannot be reached; the job is sent as soon as it is back"
+SEND_RETRY_SECONDS = 5.0  # a message taken for sending is due again after this unless it was sent
+DELIVER_EVERY_SECONDS = 1.0  # how often Celery workers send due messages (worker.celery_app)
 
 
 def new_worker_id() -> str:
@@ -99,6 +112,8 @@ class _Heartbeat:
         self._beat()
 
     def should_stop(self) -> bool:
+        if self.ctx.shutdown.is_set():  # at once, not at the next beat
+            self._halt("shutdown")
         return self._stop.is_set()
 
     def check(self) -> None:
@@ -160,7 +175,11 @@ def run_job(ctx: JobContext, scene_id: str, phase: Phase) -> str:
             elif hb.reason == "time_limit":
                 ctx.store.fail(scene_id, "time_limit_exceeded", f"{phase} took longer than {limit:.0f} s")
                 outcome = "failed"
-            else:  # cancelled; or lease lost / shutting down: someone (or the next start) resumes it
+            elif hb.reason == "shutdown":  # checkpointed: the next worker (or start) resumes it
+                ctx.store.release(scene_id, ctx.worker_id, resend=True, detail=WAITING)
+                deliver(ctx, scene_id)
+                outcome = "stopped"
+            else:  # cancelled; or lease lost: the reaper re-queued it, or another worker has it
                 ctx.store.release(scene_id, ctx.worker_id)
                 outcome = "cancelled" if hb.reason == "cancelled" else "stopped"
     after = ctx.store.get(scene_id, include_deleted=True)
@@ -259,22 +278,32 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     hb.check()
     stats = {**rec.stats, "poses": {"timings_s": result.timings, **result.stats}}
     eta = round(_training_prior_s(rec.options), 1)
-    waiting = dict(progress=0.0, eta_seconds=eta, detail="waiting for a training worker", stats=stats)
+    waiting = dict(progress=0.0, eta_seconds=eta, detail=WAITING, stats=stats)
     if not ctx.store.advance(rec.id, ctx.worker_id, "train", "training", **waiting):
         raise JobStopped("lease_lost")
-    submit_next(ctx, rec.id, "train")
+    deliver(ctx, rec.id)
 
 
-def submit_next(ctx: JobContext, scene_id: str, phase: Phase, tries: int = 3) -> None:
-    """Send the next phase; if the broker stays unreachable, the reaper re-sends it later
-    (the record already says which phase is next, so nothing is lost)."""
-    for k in range(tries):
+def deliver(ctx: JobContext, scene_id: str | None = None) -> list[str]:
+    """Send the job messages that are due (the store's outbox): every one, or one scene's.
+    Returns the scenes sent. A message the broker does not take stays due, is tried again
+    after ``SEND_RETRY_SECONDS``, and its job's status says why it waits; the first failure
+    ends this round (the broker is down for the others too). Safe from many processes at once:
+    a message is taken by one sender (and a duplicate would be dropped by the claim)."""
+    sent = []
+    for rec in ctx.store.due_messages(scene_id):
+        taken = time.time() + SEND_RETRY_SECONDS
+        if not ctx.store.take_message(rec, taken):
+            continue
         try:
-            ctx.queue.submit(scene_id, phase)
-            return
-        except Exception:
-            log.warning("sending %s of %s failed (try %d of %d)", phase, scene_id, k + 1, tries, exc_info=True)
-            time.sleep(0.5 * 2**k)
+            ctx.queue.submit(rec.id, rec.phase)  # type: ignore[arg-type]
+        except Exception as e:
+            log.warning("job %s: sending %s failed (%s: %s); it stays due", rec.id, rec.phase, type(e).__name__, e)
+            ctx.store.message_failed(rec.id, detail=QUEUE_DOWN)
+            break
+        ctx.store.message_sent(rec.id, taken, detail=WAITING)
+        sent.append(rec.id)
+    return sent
 
 
 def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
@@ -332,7 +361,13 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
         hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s + bake_cost * step_s, 1))
 
     try:
-        trainer.fit(on_progress=on_progress, should_stop=hb.should_stop, checkpoint_path=ckpt, resume=False)
+        trainer.fit(
+            on_progress=on_progress,
+            should_stop=hb.should_stop,
+            checkpoint_path=ckpt,
+            resume=False,
+            checkpoint_seconds=s.checkpoint_seconds,
+        )
     except TrainingCancelled:
         raise JobStopped(hb.reason or "cancelled") from None
     except FloatingPointError as e:
@@ -392,13 +427,14 @@ def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
 
 def requeue_stale_jobs(ctx: JobContext) -> list[str]:
     """Send again the jobs whose worker died (lease expired) or whose message was lost.
-    Safe to run from every worker at once: each job is re-sent by one of them."""
-    sent = []
+    Safe to run from every worker at once: each job is re-queued by one of them."""
+    requeued = []
     for rec in ctx.store.stale_jobs(ctx.settings.requeue_after_seconds):
-        if ctx.store.requeue(rec, ctx.settings.max_attempts):
-            submit_next(ctx, rec.id, rec.phase)
-            sent.append(rec.id)
+        if ctx.store.requeue(rec, ctx.settings.max_attempts, detail=WAITING):
+            requeued.append(rec.id)
             log.warning("job %s (%s) re-queued: its worker stopped answering", rec.id, rec.phase)
         else:
             kick_webhooks(ctx, rec.id)  # it may have failed (worker_lost)
-    return sent
+    if requeued:
+        deliver(ctx)
+    return requeued
