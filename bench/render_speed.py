@@ -30,7 +30,7 @@ untimed): the quality target.
 ``--threads N``: CPU threads per render of the current renderer (default: one per core).
 
 Memory: the bytes a loaded scene keeps (``BakedScene.nbytes``, the 8-bit textures) and those of
-the float32 ``TextureField`` copies the torch renderer samples (built for ``--before`` only); the
+the float32 ``TextureField`` copies the torch renderer samples (built for the agreement check); the
 process's resident memory after loading one scene, the increase per four more loaded copies,
 and after building the float copies.
 """
