@@ -17,14 +17,20 @@ Usage (repository root)::
 ``--baked DIR`` reuses a bake already in DIR (or writes the new bake there), so repeated
 measurements time the same textures.
 
-``--before OLD_RENDERING.py`` (e.g. ``git show HEAD~1:cmc/rendering.py > /tmp/old.py``) also
-times that version of :mod:`cmc.rendering` (its ``render_image`` over the same loaded scene),
-alternating with the current one render by render, so that both see the same machine state (a
-shared CPU drifts by tens of percent within minutes); the report then has a ``before`` block and
-the agreement of the two renders (colour PSNR, depth max relative error over covered pixels).
+``--before OLD.py`` also times an older renderer, alternating with the current one render by
+render, so that both see the same machine state (a shared CPU drifts by tens of percent within
+minutes): either a version of :mod:`cmc.rendering` (e.g. ``git show HEAD~1:cmc/rendering.py >
+/tmp/old.py``; its ``render_image`` over the same loaded scene) or of :mod:`cmc.texture_kernel`
+from before it took packed textures (its ``render_baked_mpi`` per MPI, blended by
+:func:`cmc.rendering.blend`). The report then has a ``before`` block and the agreement of the two
+renders (colour PSNR, depth max relative error over covered pixels). Every report also has the
+agreement of the current renderer with the torch renderer (:func:`cmc.rendering.render_image`,
+untimed): the quality target.
+
+``--threads N``: CPU threads per render of the current renderer (default: one per core).
 
 Memory: the bytes a loaded scene keeps (``BakedScene.nbytes``, the 8-bit textures) and those of
-the float32 ``TextureField`` copies the torch renderer samples (built for ``--before`` only); the
+the float32 ``TextureField`` copies the torch renderer samples (built for the agreement check); the
 process's resident memory after loading one scene, the increase per four more loaded copies,
 and after building the float copies.
 """
@@ -35,6 +41,7 @@ import argparse
 import datetime as dt
 import importlib.util
 import json
+import os
 import platform
 import statistics
 import sys
@@ -54,6 +61,7 @@ from cmc.bench import git_commit  # noqa: E402
 from cmc.config import preset_config  # noqa: E402
 from cmc.datasets import load_llff  # noqa: E402
 from cmc.metrics import psnr  # noqa: E402
+from cmc.rendering import ImageOutput, RayOutput, blend, blend_selection, render_image  # noqa: E402
 from cmc.training import Trainer  # noqa: E402
 
 
@@ -102,7 +110,13 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=400, help="training steps before baking")
     ap.add_argument("--repeats", type=int, default=7, help="timed renders per pose (after one warm-up)")
     ap.add_argument("--baked", type=Path, default=None, help="reuse / keep the bake in this folder")
-    ap.add_argument("--before", type=Path, default=None, help="an older cmc/rendering.py to time alternately")
+    ap.add_argument(
+        "--before",
+        type=Path,
+        default=None,
+        help="an older cmc/rendering.py or texture_kernel.py to time alternately",
+    )
+    ap.add_argument("--threads", type=int, default=None, help="CPU threads per render (default: one per core)")
     ap.add_argument("--out", type=Path, default=ROOT / "bench/render_speed_cpu.json")
     args = ap.parse_args()
 
@@ -122,31 +136,55 @@ def main() -> None:
     poses = [("test", split.test_ids[k], split.test.cameras, k) for k in range(len(split.test))]
     poses += [("input", split.train_ids[k], split.train.cameras, k) for k in range(len(split.train))]
 
-    renderers = {"after": lambda K, pose, w, h: baked.render(K, pose, w, h)}
+    renderers = {"after": lambda K, pose, w, h: baked.render(K, pose, w, h, threads=args.threads)}
     if args.before:
         old = load_rendering(args.before)
-        renderers["before"] = lambda K, pose, w, h: old.render_image(baked.fields, baked.frames, K, pose, w, h)
-        fields = baked.fields
-        memory["float_fields_mb"] = sum(b.nbytes for f in fields for b in f.buffers()) / 2**20
-        memory["rss_with_float_fields_mb"] = rss_mb()
+        if hasattr(old, "render_baked_mpi"):  # a texture_kernel: 8-bit textures per MPI, then the blend
+            textures = [np.ascontiguousarray(t) for t in baked.textures]
+            occupancy = [old.occupancy(t) for t in textures]
+
+            def render_before(K, pose, w, h):
+                P_t = torch.as_tensor(np.asarray(pose), dtype=torch.float32)
+                weights, use = blend_selection(baked.frames, P_t)
+                outs = []
+                for i in use:
+                    rgb, depth, acc = old.render_baked_mpi(textures[i], occupancy[i], baked.frames[i], K, pose, w, h)
+                    outs.append(
+                        RayOutput(
+                            torch.from_numpy(rgb).reshape(-1, 3),
+                            torch.from_numpy(depth).reshape(-1),
+                            torch.from_numpy(acc).reshape(-1),
+                        )
+                    )
+                out = blend(outs, weights[use])
+                return ImageOutput(out.rgb.reshape(h, w, 3), out.depth.reshape(h, w), out.acc.reshape(h, w))
+
+            renderers["before"] = render_before
+        else:
+            renderers["before"] = lambda K, pose, w, h: old.render_image(baked.fields, baked.frames, K, pose, w, h)
+    fields = baked.fields
+    memory["float_fields_mb"] = sum(b.nbytes for f in fields for b in f.buffers()) / 2**20
+    memory["rss_with_float_fields_mb"] = rss_mb()
     views: dict[str, list[dict]] = {name: [] for name in renderers}
     all_ms: dict[str, list[float]] = {name: [] for name in renderers}
-    agreement = []
+    agreement, agreement_torch = [], []
+
+    def agree(a, b, view):
+        covered = b.acc > 1e-3
+        rel = ((a.depth - b.depth).abs() / b.depth)[covered]
+        return {
+            "view": int(view),
+            "psnr_db": psnr(a.rgb.numpy(), b.rgb.numpy()),
+            "depth_max_rel": float(rel.max()) if len(rel) else 0.0,
+            "covered": float(covered.float().mean()),
+        }
+
     for kind, view, cams, k in poses:
         K, pose, w, h = cams.K[k], cams.world_from_cam[k], cams.width, cams.height
         outs = {name: render(K, pose, w, h) for name, render in renderers.items()}  # warm-up
+        agreement_torch.append(agree(outs["after"], render_image(baked.fields, baked.frames, K, pose, w, h), view))
         if args.before:
-            a, b = outs["after"], outs["before"]
-            covered = b.acc > 1e-3
-            rel = ((a.depth - b.depth).abs() / b.depth)[covered]
-            agreement.append(
-                {
-                    "view": int(view),
-                    "psnr_db": psnr(a.rgb.numpy(), b.rgb.numpy()),
-                    "depth_max_rel": float(rel.max()) if len(rel) else 0.0,
-                    "covered": float(covered.float().mean()),
-                }
-            )
+            agreement.append(agree(outs["after"], outs["before"], view))
         ms: dict[str, list[float]] = {name: [] for name in renderers}
         for r in range(args.repeats):
             for name in list(renderers)[:: 1 if r % 2 == 0 else -1]:  # alternate the order
@@ -185,8 +223,10 @@ def main() -> None:
         "memory": memory,
         "repeats_per_view": args.repeats,
         "warmup_per_view": 1,
+        "threads": args.threads or (os.cpu_count() or 1),
         "overall": summary(all_ms["after"]),
         "views": views["after"],
+        "agreement_with_torch": agreement_torch,
     }
     if args.before:
         report["before"] = {

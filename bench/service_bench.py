@@ -15,9 +15,25 @@ worker for both queues, over the real Redis at 127.0.0.1:6379, each its own proc
 4. Concurrency: ``--concurrent`` requests sent at once from as many threads; every answer must
    be 200 with a PNG of the right size.
 
-Usage (from the repository root; writes bench/service_cpu.json)::
+With ``--load`` (issue 10) the bench instead uploads ``--scenes`` such scenes (default 8, trained
+one after the other by the worker) and, with ``--baked DIR``, replaces each scene's bake by DIR
+before the first render (a full ``fast`` bake, as bench/render_speed.py builds: the renderer's
+cost depends on the alphas, and a few training steps leave them unlike a trained scene's). Then:
+
+5. Encoding, in this process, of a render of the first scene: PNG (compress levels 0, 1, 6),
+   JPEG (quality 90 and 80), the 16-bit depth PNG and the float32 ``.npy``: median ms and bytes.
+6. Load: for 1, 20 and 50 concurrent clients (``--clients``), each sending
+   ``--requests-per-client`` render requests one after the other (held-out views in turn), first
+   all to one scene, then to the scenes round-robin, after one warm-up render per scene (cache
+   warm). A 503 is waited out as its ``Retry-After`` says and sent again (counted as ``retries``);
+   a request's latency runs from its first send to its image. p50 / p95 / max, and errors (an
+   answer other than a PNG of the right size, or no answer within 120 s).
+
+Usage (from the repository root; writes bench/service_cpu.json, or with ``--load``
+bench/service_load_cpu.json)::
 
     python bench/service_bench.py --data ../shared/datasets/llff/fern --out bench/service_cpu.json
+    python bench/service_bench.py --load --baked /tmp/bake --steps 20 --out bench/service_load_cpu.json
 """
 
 from __future__ import annotations
@@ -65,6 +81,226 @@ def camera_body(split, i: int) -> dict:
     return {**frame, "w": data["w"], "h": data["h"], "convention": "opengl"}
 
 
+def start_services(tmp: Path, env: dict, procs: list, port: int) -> None:
+    """The API and one worker for both queues, each its own process, as in main()."""
+    api = ["-m", "uvicorn", "service.app:create_app", "--factory", "--log-level", "warning", "--port", str(port)]
+    for name, cmd in (
+        ("api", api),
+        ("worker", ["-m", "celery", "-A", "worker.celery_app", "worker", "-c", "1", "--loglevel", "WARNING",
+                    "-Q", f"{env['CMC_CPU_QUEUE']},{env['CMC_GPU_QUEUE']}", "--without-gossip", "--without-mingle"]),
+    ):  # fmt: skip
+        log = open(tmp / f"{name}.log", "wb")  # noqa: SIM115
+        procs.append(
+            subprocess.Popen(
+                [sys.executable, *cmd], env=env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+            )
+        )
+    for _ in range(200):
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.2)
+    raise RuntimeError(f"the API did not start: {(tmp / 'api.log').read_text()[-2000:]}")
+
+
+def timed(fn, repeats: int = 15) -> tuple[float, object]:
+    """Median milliseconds of ``fn()`` and its last result."""
+    ms, out = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        ms.append(1000 * (time.perf_counter() - t0))
+    return statistics.median(ms), out
+
+
+def encodings(baked_dir: Path, split) -> dict:
+    """Median time and size of every encoding of one render (the first held-out view)."""
+    import io
+
+    from PIL import Image
+
+    from cmc.baking import BakedScene
+    from service.renders import encode_depth_npy, encode_depth_png16, encode_image
+
+    baked = BakedScene.load(baked_dir)
+    K, pose = split.test.cameras.K[0], split.test.cameras.world_from_cam[0]
+    render_ms, out = timed(lambda: baked.render(K, pose, threads=1), 5)
+    rgb, depth = out.rgb.numpy(), out.depth.numpy()
+    rgb8 = Image.fromarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8))
+
+    def pil(fmt: str, **kw):
+        buf = io.BytesIO()
+        rgb8.save(buf, fmt, **kw)
+        return buf.getvalue()
+
+    cases = {
+        "png (service: compress_level 1)": lambda: encode_image(rgb, "image/png"),
+        "jpeg (service: quality 90)": lambda: encode_image(rgb, "image/jpeg"),
+        "depth png16 (service)": lambda: encode_depth_png16(depth, baked.far),
+        "depth npy (service)": lambda: encode_depth_npy(depth),
+        "png compress_level 0 (8-bit image only)": lambda: pil("PNG", compress_level=0),
+        "png compress_level 6 (8-bit image only)": lambda: pil("PNG", compress_level=6),
+        "jpeg quality 80 (8-bit image only)": lambda: pil("JPEG", quality=80),
+        "float to 8-bit conversion alone": lambda: (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8).tobytes(),
+    }
+    result = {"render_ms_one_thread": render_ms, "size": [int(rgb.shape[1]), int(rgb.shape[0])]}
+    for name, fn in cases.items():
+        ms, data = timed(fn)
+        result[name] = {"median_ms": ms, "bytes": len(data)}  # type: ignore[arg-type]
+        print(f"encode {name}: {ms:.1f} ms, {len(data)} bytes", flush=True)  # type: ignore[arg-type]
+    return result
+
+
+def load_phase(url: str, headers: dict, targets: list[tuple[str, dict]], clients: int, per_client: int) -> dict:
+    """``clients`` threads, each sending ``per_client`` renders in turn; 503s waited out and resent."""
+    results: list[dict] = []
+    barrier = threading.Barrier(clients)
+    lock = threading.Lock()
+
+    def client(c: int) -> None:
+        with httpx.Client(base_url=url, headers=headers, timeout=120) as http:
+            barrier.wait()
+            for r in range(per_client):
+                sid, body = targets[(c * per_client + r) % len(targets)]
+                t0, retries, status, ok = time.perf_counter(), 0, 0, False
+                while True:
+                    try:
+                        resp = http.post(f"/v1/scenes/{sid}/render", json=body)
+                    except httpx.HTTPError:
+                        status = 0
+                        break
+                    status = resp.status_code
+                    if status == 503 and "Retry-After" in resp.headers:
+                        retries += 1
+                        time.sleep(float(resp.headers["Retry-After"]))
+                        continue
+                    ok = status == 200 and resp.content[:8] == b"\x89PNG\r\n\x1a\n"
+                    break
+                with lock:
+                    results.append({"ok": ok, "status": status, "retries": retries, "s": time.perf_counter() - t0})
+
+    t0 = time.perf_counter()
+    threads = [threading.Thread(target=client, args=(c,)) for c in range(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    wall = time.perf_counter() - t0
+    lat = [r["s"] for r in results if r["ok"]]
+    return {
+        "clients": clients,
+        "requests": len(results),
+        "ok": len(lat),
+        "errors": len(results) - len(lat),
+        "retries_after_503": sum(r["retries"] for r in results),
+        "p50_s": percentile(lat, 50) if lat else None,
+        "p95_s": percentile(lat, 95) if lat else None,
+        "max_s": max(lat) if lat else None,
+        "renders_per_s": len(lat) / wall,
+        "wall_s": wall,
+    }
+
+
+def load_bench(args) -> None:
+    """The --load protocol (module docstring, 5-6)."""
+    import shutil
+
+    import redis
+
+    fern = Path(args.data).resolve()
+    tmp = Path(tempfile.mkdtemp(prefix="cmc-service-load-"))
+    run = uuid.uuid4().hex[:8]
+    port = free_port()
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(ROOT),
+        "CMC_MODE": "celery",
+        "CMC_BROKER_URL": args.redis,
+        "CMC_DATA_DIR": str(tmp),
+        "CMC_CPU_QUEUE": f"bench-cpu-{run}",
+        "CMC_GPU_QUEUE": f"bench-gpu-{run}",
+        "CMC_API_KEYS": "bench-key",
+    }
+    settings = {k: v for k, v in env.items() if k.startswith("CMC_RENDER")}
+    headers = {"Authorization": "Bearer bench-key"}
+    url = f"http://127.0.0.1:{port}"
+    procs: list = []
+    report: dict = {
+        "date": date.today().isoformat(),
+        "command": "python bench/service_bench.py " + " ".join(sys.argv[1:]),
+        "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count()},
+        "git_commit": subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+        ).stdout.strip(),
+        "settings": {k: str(v) for k, v in vars(args).items()},
+        "render_settings_from_env": settings,
+    }
+    try:
+        start_services(tmp, env, procs, port)
+        client = httpx.Client(base_url=url, headers=headers, timeout=120)
+        split = load_llff(fern)
+        train = split.train
+        names = train.names
+        cams = camera_file_to_dict(CameraFile(train.cameras, names, train.near_far), "opengl")
+        sids = []
+        t0 = time.perf_counter()
+        for _ in range(args.scenes):
+            files = [("images", (n, (fern / "images_8" / n).read_bytes(), "image/png")) for n in names]
+            files.append(("cameras", ("cameras.json", json.dumps(cams).encode(), "application/json")))
+            files.append(("options", (None, json.dumps({"steps": args.steps}))))
+            sids.append(client.post("/v1/scenes", files=files).json()["id"])
+        for sid in sids:
+            while (body := client.get(f"/v1/scenes/{sid}").json())["status"] not in ("ready", "failed"):
+                time.sleep(2)
+            assert body["status"] == "ready", body
+        report["scenes"] = {"count": len(sids), "steps": args.steps, "seconds_to_all_ready": time.perf_counter() - t0}
+        print(f"{len(sids)} scenes ready in {report['scenes']['seconds_to_all_ready']:.0f} s", flush=True)
+        for p in procs[1:]:  # the worker: nothing else runs beside the API from here on
+            os.killpg(p.pid, signal.SIGTERM)
+            p.wait(30)
+        if args.baked:
+            for sid in sids:
+                dst = tmp / "storage" / sid / "baked"
+                shutil.rmtree(dst)
+                shutil.copytree(args.baked, dst)
+        report["encoding"] = encodings(tmp / "storage" / sids[0] / "baked", split)
+        bodies = [camera_body(split.test, i) for i in range(len(split.test))]
+        for sid in sids:  # warm the cache
+            assert client.post(f"/v1/scenes/{sid}/render", json=bodies[0]).status_code == 200
+        report["load"] = []
+        for scenario, targets in (
+            ("one scene", [(sids[0], b) for b in bodies]),
+            (f"{len(sids)} scenes round-robin", [(sid, bodies[k % len(bodies)]) for k, sid in enumerate(sids)]),
+        ):
+            for clients in (int(c) for c in args.clients.split(",")):
+                r = {"scenario": scenario, **load_phase(url, headers, targets, clients, args.requests_per_client)}
+                report["load"].append(r)
+                print(
+                    f"{scenario}, {clients} clients: {r['ok']}/{r['requests']} ok, {r['errors']} errors, "
+                    f"{r['retries_after_503']} retries after 503, p50 {r['p50_s']:.2f} s p95 {r['p95_s']:.2f} s "
+                    f"max {r['max_s']:.2f} s, {r['renders_per_s']:.2f} renders/s",
+                    flush=True,
+                )
+        rss = subprocess.run(["ps", "-o", "rss=", "-p", str(procs[0].pid)], capture_output=True, text=True).stdout
+        report["api_rss_mb_after"] = int(rss.split()[0]) / 1024 if rss.split() else None
+    finally:
+        for p in procs:
+            try:
+                os.killpg(p.pid, signal.SIGTERM)
+                p.wait(15)
+            except (ProcessLookupError, subprocess.TimeoutExpired):
+                try:
+                    os.killpg(p.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+        redis.Redis.from_url(args.redis).flushdb()  # the benchmark's own database (--redis)
+    out = Path(args.out)
+    out.write_text(json.dumps(report, indent=1) + "\n")
+    print(f"wrote {out}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", default="../shared/datasets/llff/fern")
@@ -74,7 +310,14 @@ def main() -> None:
     ap.add_argument("--renders", type=int, default=30)
     ap.add_argument("--concurrent", type=int, default=20)
     ap.add_argument("--redis", default="redis://127.0.0.1:6379/13", help="a Redis database of its own (emptied after)")
+    ap.add_argument("--load", action="store_true", help="the issue-10 protocol: encodings and latency under load")
+    ap.add_argument("--scenes", type=int, default=8, help="scenes for --load")
+    ap.add_argument("--baked", type=Path, default=None, help="with --load: the bake every scene renders")
+    ap.add_argument("--clients", default="1,20,50", help="with --load: concurrent clients, comma-separated")
+    ap.add_argument("--requests-per-client", type=int, default=4)
     args = ap.parse_args()
+    if args.load:
+        return load_bench(args)
     fern = Path(args.data).resolve()
     tmp = Path(tempfile.mkdtemp(prefix="cmc-service-bench-"))
     run = uuid.uuid4().hex[:8]

@@ -35,6 +35,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -43,7 +44,10 @@ from PIL import Image
 from cmc.fields import MPIField, TextureField
 from cmc.geometry import mean_baseline
 from cmc.model import CMCModel
-from cmc.rendering import ImageOutput, MPIFrame, RayOutput, blend, blend_selection, render_image
+from cmc.rendering import ImageOutput, MPIFrame, blend_selection, render_image
+
+if TYPE_CHECKING:
+    from cmc.texture_kernel import MPIGeometry, PackedTextures
 
 FORMAT = "cmc-mpi"
 VERSION = 1
@@ -163,19 +167,19 @@ def bake(model: CMCModel, out_dir: str | Path, scale: float = 1.0, merge: int = 
 
 @dataclass
 class BakedScene:
-    """A loaded baked folder: the 8-bit textures of each MPI plus their frames.
+    """A loaded baked folder: the 8-bit textures of its MPIs plus their frames.
 
     Attributes:
-        textures: per MPI, [D, h, w, 4] uint8 straight-alpha planes, nearest first, the back
-            plane opaque (alpha 255), as rendered; the only copy of the texels kept in memory.
-        occupancy: per MPI, :func:`cmc.texture_kernel.occupancy` of its textures.
+        packed: every MPI's [D, h, w, 4] uint8 straight-alpha planes (nearest first, the back
+            plane opaque, alpha 255, as rendered) and their occupancy, as the compiled kernel
+            samples them (:class:`cmc.texture_kernel.PackedTextures`); the only copy of the
+            texels kept in memory.
         device: where :meth:`render` runs: the compiled kernel on the CPU
             (:mod:`cmc.texture_kernel`), else :func:`cmc.rendering.render_image` over
             :attr:`fields` (built on first use).
     """
 
-    textures: list[np.ndarray]
-    occupancy: list[np.ndarray]
+    packed: PackedTextures
     frames: list[MPIFrame]
     width: int
     height: int
@@ -183,10 +187,11 @@ class BakedScene:
     far: float
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
     _fields: list[TextureField] | None = field(default=None, repr=False)
+    _geometry: list[MPIGeometry] | None = field(default=None, repr=False)
 
     @staticmethod
     def load(folder: str | Path, device: str | torch.device = "cpu") -> BakedScene:
-        from cmc.texture_kernel import occupancy
+        from cmc.texture_kernel import PackedTextures  # numba, imported when a scene is loaded
 
         folder = Path(folder)
         try:
@@ -199,8 +204,9 @@ class BakedScene:
             raise BakedFormatError(
                 f"{folder} holds {m.get('format')} v{m.get('version')}, expected {FORMAT} v{VERSION}"
             )
-        textures, frames = [], []
-        for e in m["mpis"]:
+        packed = PackedTextures.allocate([(len(e["depths"]), *e["tile"]) for e in m["mpis"]])
+        frames = []
+        for i, e in enumerate(m["mpis"]):
             (h, w), (rows, cols) = e["tile"], e["grid"]
             name = Path(e["atlas"]).name  # never follow paths out of the folder
             with Image.open(folder / name) as im:
@@ -209,27 +215,26 @@ class BakedScene:
             if atlas.shape[:2] != (rows * h, cols * w) or rows * cols < D:
                 raise BakedFormatError(f"{name} is {atlas.shape[1]}x{atlas.shape[0]}, expected {cols * w}x{rows * h}")
             tex = atlas.reshape(rows, h, cols, w, 4).transpose(0, 2, 1, 3, 4).reshape(rows * cols, h, w, 4)[:D].copy()
+            del atlas
             tex[-1, ..., 3] = 255  # the back plane is opaque (cmc.fields)
-            textures.append(tex)
+            packed.fill(i, tex)
             t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device)  # noqa: E731
             frames.append(
                 MPIFrame(t(e["K"]), t(e["world_from_cam"]), t(e["depths"]), m["width"], m["height"], float(e["margin"]))
             )
         return BakedScene(
-            textures,
-            [occupancy(tex) for tex in textures],
-            frames,
-            int(m["width"]),
-            int(m["height"]),
-            float(m["near"]),
-            float(m["far"]),
-            torch.device(device),
+            packed, frames, int(m["width"]), int(m["height"]), float(m["near"]), float(m["far"]), torch.device(device)
         )
+
+    @property
+    def textures(self) -> list[np.ndarray]:
+        """Per MPI, [D, h, w, 4] uint8 straight-alpha planes: views of :attr:`packed`, no copy."""
+        return [self.packed.texture(i) for i in range(len(self.frames))]
 
     @property
     def nbytes(self) -> int:
         """Bytes held by the textures and occupancy maps (what a loaded scene costs in memory)."""
-        return sum(t.nbytes for t in self.textures) + sum(o.nbytes for o in self.occupancy)
+        return self.packed.nbytes
 
     @property
     def fields(self) -> list[TextureField]:
@@ -249,31 +254,24 @@ class BakedScene:
         height: int | None = None,
         min_weight: float = 0.0,
         mpi_index: int | None = None,
+        threads: int | None = None,
     ) -> ImageOutput:
         """Colour and depth for any camera (OpenCV convention), default size the input size;
-        the blend of all MPIs (:func:`cmc.rendering.render_image`), or MPI ``mpi_index`` alone."""
+        the blend of all MPIs (:func:`cmc.rendering.render_image`), or MPI ``mpi_index`` alone.
+        ``threads``: CPU threads for this render (default one per core)."""
         width, height = width or self.width, height or self.height
         if self.device.type != "cpu":
             return render_image(
                 self.fields, self.frames, K, world_from_cam, width, height, mpi_index, min_weight=min_weight
             )
-        from cmc.texture_kernel import render_baked_mpi
+        from cmc.texture_kernel import MPIGeometry
+        from cmc.texture_kernel import render as render_packed
 
+        if self._geometry is None:
+            self._geometry = [MPIGeometry.from_frame(f) for f in self.frames]
         P_t = torch.as_tensor(np.asarray(world_from_cam), dtype=torch.float32)
         weights, use = blend_selection(self.frames, P_t, mpi_index, min_weight)
-        outs = []
-        for i in use:
-            rgb, depth, acc = render_baked_mpi(
-                self.textures[i], self.occupancy[i], self.frames[i], K, world_from_cam, width, height
-            )
-            outs.append(
-                RayOutput(
-                    torch.from_numpy(rgb).reshape(-1, 3),
-                    torch.from_numpy(depth).reshape(-1),
-                    torch.from_numpy(acc).reshape(-1),
-                )
-            )
-        out = blend(outs, weights[use])
-        return ImageOutput(
-            out.rgb.reshape(height, width, 3), out.depth.reshape(height, width), out.acc.reshape(height, width)
+        rgb, depth, acc = render_packed(
+            self.packed, self._geometry, weights.numpy(), use, K, world_from_cam, width, height, threads=threads
         )
+        return ImageOutput(torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(acc))

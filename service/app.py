@@ -88,10 +88,8 @@ def create_app(
             store.close()
 
     app = FastAPI(title="CMC reconstruction service", version="1.0.0", description=DESCRIPTION, lifespan=lifespan)
-    renders = BakedCache(storage, settings.render_cache_bytes)
-    app.state.services = Services(
-        settings, store, storage, queue, keys, renders, metrics, render_queue, quotas, intake
-    )
+    renders = BakedCache(storage, settings.render_cache_bytes, settings.render_threads)
+    app.state.services = Services(settings, store, storage, queue, keys, renders, metrics, render_queue, quotas, intake)
     install_error_handlers(app)
     app.add_middleware(RateLimitHeaders)
     app.add_middleware(BodyGuard, keys=keys, max_json_bytes=settings.max_json_bytes, streamed={("POST", "/v1/scenes")})

@@ -4,7 +4,7 @@ Rendering uses :class:`cmc.baking.BakedScene` (the baked atlases alone, no train
 That needs torch, imported on the first render only; the rest of the API does not load it.
 Renders run on their own threads (:class:`RenderQueue`), never on the thread pool the other
 routes share, so probes and status polls answer whatever the render load: at most
-``render_concurrency`` at once (each uses all of torch's threads), ``render_queue`` more
+``render_concurrency`` at once (each on ``render_threads`` CPU threads), ``render_queue`` more
 waiting their turn, and beyond that 503 with ``Retry-After``.
 
 Depth encodings (``POST /v1/scenes/{id}/depth``, by ``Accept``):
@@ -50,8 +50,8 @@ class BakedCache:
     """LRU cache of loaded baked scenes, keyed by scene id, bounded by their bytes in memory
     (:attr:`cmc.baking.BakedScene.nbytes`); the scene just loaded always stays."""
 
-    def __init__(self, storage: Storage, capacity_bytes: int):
-        self.storage, self.capacity_bytes = storage, capacity_bytes
+    def __init__(self, storage: Storage, capacity_bytes: int, threads: int = 1):
+        self.storage, self.capacity_bytes, self.threads = storage, capacity_bytes, threads
         self._scenes: OrderedDict[str, Any] = OrderedDict()
         self._lock = threading.Lock()
         self._load_locks: dict[str, threading.Lock] = {}
@@ -91,7 +91,7 @@ class BakedCache:
 
         baked = self.get(scene_id)
         with torch.inference_mode():
-            out = baked.render(K, world_from_cam, width, height)
+            out = baked.render(K, world_from_cam, width, height, threads=self.threads)
             rgb = out.rgb.float().cpu().numpy()
             depth = out.depth.float().cpu().numpy()
         return Rendered(rgb, depth, baked.near, baked.far)

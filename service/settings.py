@@ -83,6 +83,12 @@ class Settings(BaseSettings):
         "planes); the least recently used are dropped beyond it, never the one just loaded",
     )
     render_concurrency: int = Field(2, ge=1, description="renders computed at once (others wait)")
+    render_threads: int = Field(
+        1,
+        ge=1,
+        description="CPU threads per render; render_concurrency x render_threads should not exceed the cores "
+        "(on 2 busy cores, 2 renders of 1 thread each served 15 % more renders per second than 1 of 2 threads)",
+    )
     render_queue: int = Field(8, ge=0, description="renders waiting for one of those; more get 503 + Retry-After")
     max_render_pixels: int = Field(4_000_000, ge=1, description="largest render (width x height)")
 

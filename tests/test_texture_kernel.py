@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
 
 from cmc.baking import BakedScene
 from cmc.cameras import look_at
-from cmc.rendering import MPIFrame, render_texture_image_reference
-from cmc.texture_kernel import TILE, occupancy, render_baked_mpi
+from cmc.rendering import MPIFrame, blend, render_texture_image_reference
+from cmc.texture_kernel import TILE, MPIGeometry, PackedTextures, occupancy, render
 
 W, H, D = 40, 30, 6
 K = np.array([[36.0, 0, W / 2], [0, 36.0, H / 2], [0, 0, 1]])
@@ -31,52 +33,103 @@ def _textures(rng: np.random.Generator) -> np.ndarray:
     return tex
 
 
-def _twin(tex: np.ndarray, frame: MPIFrame, P: np.ndarray):
+def _premultiplied(tex: np.ndarray) -> torch.Tensor:
     rgba = torch.as_tensor(tex).permute(0, 3, 1, 2).float() / 255.0
-    premult = torch.cat([rgba[:, :3] * rgba[:, 3:], rgba[:, 3:]], 1)
+    return torch.cat([rgba[:, :3] * rgba[:, 3:], rgba[:, 3:]], 1)
+
+
+def _twin(textures: list[np.ndarray], frames: list[MPIFrame], weights: np.ndarray, P: np.ndarray):
+    """The slow per-plane twin of every MPI, blended as cmc.rendering.render_image blends them."""
     Kt, Pt = torch.as_tensor(K, dtype=torch.float32), torch.as_tensor(P, dtype=torch.float32)
-    return render_texture_image_reference(premult, frame, Kt, Pt, W, H)
+    outs = [
+        render_texture_image_reference(_premultiplied(t), f, Kt, Pt, W, H)
+        for t, f in zip(textures, frames, strict=True)
+    ]
+    return blend(outs, torch.as_tensor(weights, dtype=torch.float32))
 
 
+def _fast(textures, frames, weights, P, min_transmittance=0.0, threads=1, packed=None):
+    packed = packed or PackedTextures.pack(textures)
+    geometry = [MPIGeometry.from_frame(f) for f in frames]
+    return render(packed, geometry, weights, range(len(textures)), K, P, W, H, min_transmittance, threads)
+
+
+def _assert_close(fast, slow):
+    rgb, depth, acc = (torch.from_numpy(a) for a in fast)
+    torch.testing.assert_close(rgb.reshape(-1, 3), slow.rgb, rtol=0, atol=2e-5)
+    torch.testing.assert_close(acc.reshape(-1), slow.acc, rtol=0, atol=2e-5)
+    torch.testing.assert_close(depth.reshape(-1), slow.depth, rtol=1e-4, atol=1e-4)
+
+
+FRAME = MPIFrame.create(K, np.eye(4), 2.0, 8.0, D, W, H, 1.2, "cpu")
 CAMERAS = {
     "reference": np.eye(4),
     "sideways": look_at(np.array([0.4, -0.2, 0.0]), np.array([0.0, 0.0, 4.0])),
     "outside the capture": look_at(np.array([0.0, 0.0, 0.0]), np.array([3.0, 0.5, 2.0])),
     "between the planes": look_at(np.array([0.1, 0.0, 3.0]), np.array([0.1, 0.0, 8.0])),
+    "on a plane, looking along it": look_at(
+        np.array([0.0, 0.0, float(FRAME.depths[2])]), np.array([1.0, 0.1, float(FRAME.depths[2]) + 0.3])
+    ),
     "behind all planes, looking back": look_at(np.array([0.0, 0.0, 9.0]), np.array([0.0, 0.0, 0.0])),
 }
 
 
 @pytest.mark.parametrize("camera", list(CAMERAS))
 def test_kernel_equals_the_slow_twin(camera):
-    rng = np.random.default_rng(1)
-    tex = _textures(rng)
-    frame = MPIFrame.create(K, np.eye(4), 2.0, 8.0, D, W, H, 1.2, "cpu")
+    tex = _textures(np.random.default_rng(1))
     P = CAMERAS[camera]
-    rgb, depth, acc = render_baked_mpi(tex, occupancy(tex), frame, K, P, W, H, min_transmittance=0.0)
-    slow = _twin(tex, frame, P)
+    fast = _fast([tex], [FRAME], np.ones(1), P)
+    slow = _twin([tex], [FRAME], np.ones(1), P)
     assert float(slow.acc.max()) > 0.5, "the camera must see some of the planes"
-    torch.testing.assert_close(torch.from_numpy(rgb).reshape(-1, 3), slow.rgb, rtol=0, atol=2e-5)
-    torch.testing.assert_close(torch.from_numpy(acc).reshape(-1), slow.acc, rtol=0, atol=2e-5)
-    torch.testing.assert_close(torch.from_numpy(depth).reshape(-1), slow.depth, rtol=1e-4, atol=1e-4)
+    if camera in ("outside the capture", "on a plane, looking along it"):
+        assert float(slow.acc.min()) < 0.5, "and miss some"
+    _assert_close(fast, slow)
     # Early termination changes a pixel by at most the transmittance left.
-    rgb_t, _, acc_t = render_baked_mpi(tex, occupancy(tex), frame, K, P, W, H, min_transmittance=1e-3)
-    assert np.abs(rgb_t - rgb).max() <= 1e-3 and np.abs(acc_t - acc).max() <= 1e-3
+    rgb_t, _, acc_t = _fast([tex], [FRAME], np.ones(1), P, min_transmittance=1e-3)
+    assert np.abs(rgb_t - fast[0]).max() <= 1e-3 and np.abs(acc_t - fast[2]).max() <= 1e-3
+
+
+@pytest.mark.parametrize("camera", ["reference", "sideways", "between the planes"])
+def test_kernel_blends_mpis_of_different_sizes_as_the_twin(camera):
+    """Two MPIs (other camera, plane count and texture size) blended in the kernel, on 1 or 3
+    threads (identical results), equal the blend of their slow twins."""
+    rng = np.random.default_rng(2)
+    other = MPIFrame.create(K, look_at(np.array([-0.3, 0.1, 0.0]), np.array([0.0, 0.0, 5.0])), 2.5, 9.0, 4, W, H, 1.0)
+    tex2 = rng.integers(0, 256, size=(4, H, W, 4), dtype=np.uint8)
+    tex2[-1, ..., 3] = 255
+    textures, frames, weights = [_textures(rng), tex2], [FRAME, other], np.array([0.7, 0.3])
+    P = CAMERAS[camera]
+    one = _fast(textures, frames, weights, P, threads=1)
+    three = _fast(textures, frames, weights, P, threads=3)
+    assert all(np.array_equal(a, b) for a, b in zip(one, three, strict=True))
+    _assert_close(one, _twin(textures, frames, weights, P))
 
 
 def test_occupancy_marks_tiles_a_bilinear_tap_can_reach():
-    tex = np.zeros((2, 3 * TILE, 3 * TILE, 4), dtype=np.uint8)  # the second plane is empty
-    tex[0, TILE, TILE] = 200, 100, 50, 9  # the first texel of the middle tile
+    tex = np.zeros((2, 3 * TILE - 2, 3 * TILE - 2, 4), dtype=np.uint8)  # framed: 3 x 3 tiles
+    tex[0, TILE - 1, TILE - 1] = 200, 100, 50, 9  # framed texel (TILE, TILE): the middle tile's first
     occ = occupancy(tex)
-    assert occ.shape == (2, 3, 3) and not occ[1].any()
+    assert occ.shape == (2, 3, 3) and not occ[1].any()  # the second plane is empty
     # A sample whose top-left tap is one texel up or left of it (in the tiles before) reaches it.
-    assert occ[0].tolist() == [[True, True, False], [True, True, False], [False, False, False]]
+    assert occ[0].tolist() == [[1, 1, 0], [1, 1, 0], [0, 0, 0]]
     # Skipping empty tiles is exact: the kernel with the real map equals it with every tile marked.
-    frame = MPIFrame.create(K, np.eye(4), 2.0, 8.0, 2, 3 * TILE, 3 * TILE, 1.0, "cpu")
+    frame = MPIFrame.create(K, np.eye(4), 2.0, 8.0, 2, 3 * TILE - 2, 3 * TILE - 2, 1.0, "cpu")
     P = look_at(np.array([0.05, 0.03, 0.0]), np.array([0.0, 0.0, 4.0]))
-    a = render_baked_mpi(tex, occ, frame, K, P, W, H, 0.0)
-    b = render_baked_mpi(tex, np.ones_like(occ), frame, K, P, W, H, 0.0)
+    packed = PackedTextures.pack([tex])
+    every = replace(packed, occ=np.ones_like(packed.occ))
+    a = _fast([tex], [frame], np.ones(1), P, packed=packed)
+    b = _fast([tex], [frame], np.ones(1), P, packed=every)
     assert a[2].max() > 0 and all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def test_packed_textures_keep_the_texels():
+    rng = np.random.default_rng(3)
+    textures = [_textures(rng), rng.integers(0, 256, size=(3, 5, 7, 4), dtype=np.uint8)]
+    packed = PackedTextures.pack(textures)
+    assert all(np.array_equal(packed.texture(i), t) for i, t in enumerate(textures))
+    assert packed.texels.dtype == np.dtype("<u4")
+    first = int(packed.texels[packed.base[1, 0] + (7 + 2) + 1])  # MPI 1, plane 0, texel (0, 0) (framed)
+    assert first == int.from_bytes(textures[1][0, 0, 0].tobytes(), "little")  # R in the low byte
 
 
 def test_baked_scene_keeps_only_the_8_bit_textures(tmp_path):
@@ -90,7 +143,8 @@ def test_baked_scene_keeps_only_the_8_bit_textures(tmp_path):
     baked = BakedScene.load(bake(trainer.model, tmp_path / "b"))
     assert all(t.dtype == np.uint8 and t.shape[-1] == 4 for t in baked.textures)
     assert all((t[-1, ..., 3] == 255).all() for t in baked.textures)  # the back plane is opaque
-    assert baked.nbytes == sum(t.nbytes for t in baked.textures) + sum(o.nbytes for o in baked.occupancy)
+    texels = sum(t.nbytes for t in baked.textures)
+    assert baked.nbytes == baked.packed.nbytes and texels < baked.nbytes < 1.25 * texels  # frames, tile map
     assert baked._fields is None  # no float copy until a non-CPU path asks for one
 
 
@@ -119,3 +173,18 @@ def test_render_cache_is_bounded_by_bytes(tmp_path):
     assert list(small._scenes) == [a]
     out = small.render(a, scene.cameras.K[0], scene.cameras.world_from_cam[0], 32, 24)
     assert out.rgb.shape == (24, 32, 3) and out.rgb.mean() > 0.05
+
+
+def test_renders_on_several_threads_at_once_are_those_made_one_by_one():
+    """The service computes several renders at once (CMC_RENDER_CONCURRENCY), each on
+    CMC_RENDER_THREADS threads: the kernel shares nothing between calls."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    tex = _textures(np.random.default_rng(4))
+    packed = PackedTextures.pack([tex])
+    cameras = list(CAMERAS.values()) * 2
+    alone = [_fast([tex], [FRAME], np.ones(1), P, 1e-4, 1, packed) for P in cameras]
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda P: _fast([tex], [FRAME], np.ones(1), P, 1e-4, 2, packed), cameras))
+    for a, b in zip(alone, together, strict=True):
+        assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
