@@ -81,6 +81,17 @@ FERN_STEPS = [
         "training and 1.4x the render time)",
     ),
     ("after", "`fast` of the first view-quality session (c969177), before the margin change"),
+    # Two runs of a later session (after the margin change), one thread, the CPU shared.
+    (
+        "align",
+        "`fast` now with the texel grid on the pixel grid (margin 1.2063: 608x456 texels; not adopted: "
+        "LPIPS-vgg 0.292 against 0.286)",
+    ),
+    (
+        "curvature",
+        "`fast` now + edge-aware curvature prior on rendered disparity over 8x8 patches, 0.5 (not adopted: "
+        "-0.13 dB, LPIPS-vgg -0.002; on small synthetic runs -0.04 to -0.07 dB halfway at 0.05; code: commit CURV)",
+    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
