@@ -90,7 +90,7 @@ FERN_STEPS = [
     (
         "curvature",
         "`fast` now + edge-aware curvature prior on rendered disparity over 8x8 patches, 0.5 (not adopted: "
-        "-0.13 dB, LPIPS-vgg -0.002; on small synthetic runs -0.04 to -0.07 dB halfway at 0.05; code: commit CURV)",
+        "-0.13 dB, LPIPS-vgg -0.002; on small synthetic runs -0.04 to -0.07 dB halfway at 0.05; the option was removed; code: commit 47c4998)",
     ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
@@ -142,6 +142,11 @@ REMOVED_OPTIONS = {
     "model.pyramid.alpha_detail_scale": 0.0,
     "loss.lambda_sparse_depth": 0.0,
     "loss.sparse_points_per_view": 256,
+    "loss.lambda_curvature": 0.0,
+    "loss.curvature_edge_sigma": 0.05,
+    "patches_per_view": 8,
+    "patch_size": 8,
+    "patch_stride": 2,
 }
 
 

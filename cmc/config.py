@@ -36,10 +36,6 @@ class LossConfig:
     lambda_dc: float = 1.0  # depth consistency between MPIs at unseen poses (Eq. 4.7)
     lambda_smooth: float = 0.0  # total variation of the finest alpha level (pyramid fields only)
     lambda_distortion: float = 0.0  # concentration of each ray's opacity (cmc.losses.distortion)
-    # Edge-aware curvature of rendered disparity over patches of the input views
-    # (cmc.losses.depth_curvature); > 0 draws TrainConfig.patches_per_view patches per view.
-    lambda_curvature: float = 0.0
-    curvature_edge_sigma: float = 0.05  # colour step (mean abs RGB) at which the prior fades to 1/e
     # Form of both depth-consistency terms: "squared" (the paper's, on depth / (far - near)) or
     # "cauchy" (occlusion-tolerant, on disparity; cmc.losses.robust_depth_consistency).
     depth_consistency: Literal["squared", "cauchy"] = "squared"
@@ -54,11 +50,6 @@ class TrainConfig:
     preset: Preset = "fast"
     steps: int = 400
     rays_per_view: int = 2048  # rays drawn from every input view per step
-    # With loss.lambda_curvature > 0, that many of the rays come as square patches: patches of
-    # patch_size x patch_size pixels, patch_stride pixels apart (the rest stay uniform random).
-    patches_per_view: int = 8
-    patch_size: int = 8
-    patch_stride: int = 2
     unseen_rays: int = 2048  # rays drawn at each unseen pose per step
     unseen_poses: int = 1  # unseen poses per step
     unseen_jitter: float = 0.1  # std of the unseen-pose centre jitter, in mean baselines

@@ -29,7 +29,6 @@ from cmc.geometry import sample_virtual_pose
 from cmc.losses import (
     appearance_consistency,
     depth_consistency,
-    depth_curvature,
     distortion,
     reconstruction_loss,
     robust_depth_consistency,
@@ -105,20 +104,6 @@ class Trainer:
         uv = torch.stack([idx % w, idx // w], -1).float() + 0.5
         return idx, uv
 
-    def _patch_pixels(self, gen: torch.Generator, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """n square patches (``cfg.patch_size`` pixels a side, ``cfg.patch_stride`` apart) at
-        random places of the image: pixel indices and centre coordinates [n * size^2, 2],
-        row-major within each patch."""
-        w, h = self.scene.cameras.width, self.scene.cameras.height
-        size, stride = self.cfg.patch_size, self.cfg.patch_stride
-        span = stride * (size - 1)
-        x0 = torch.randint(0, w - span, (n, 1, 1), generator=gen)
-        y0 = torch.randint(0, h - span, (n, 1, 1), generator=gen)
-        k = torch.arange(size) * stride
-        x = (x0 + k[None, None, :]).expand(n, size, size).reshape(-1)
-        y = (y0 + k[None, :, None]).expand(n, size, size).reshape(-1)
-        return (y * w + x).to(self.device), torch.stack([x, y], -1).float().to(self.device) + 0.5
-
     def compute_losses(self, step: int) -> dict[str, torch.Tensor]:
         """All loss terms of step ``step`` (unweighted) and their weighted sum ``total``."""
         cfg, lc = self.cfg, self.cfg.loss
@@ -127,16 +112,9 @@ class Trainer:
         fields, frames = list(self.model.fields), self.model.frames
         full = step >= lc.recon_only_fraction * cfg.steps
         # Target cameras of this step: every input view, then the unseen poses.
-        # With the curvature prior, each view's rays start with its patches (n_patch rays).
-        n_patch = cfg.patches_per_view * cfg.patch_size**2 if lc.lambda_curvature > 0 else 0
-        if n_patch > cfg.rays_per_view:
-            raise ValueError(f"{n_patch} patch rays per view exceed rays_per_view={cfg.rays_per_view}")
         groups, targets = [], []
         for j in range(len(self.scene)):
-            idx, uv = self._random_pixels(gen, cfg.rays_per_view - n_patch)
-            if n_patch:
-                p_idx, p_uv = self._patch_pixels(gen, cfg.patches_per_view)
-                idx, uv = torch.cat([p_idx, idx]), torch.cat([p_uv, uv])
+            idx, uv = self._random_pixels(gen, cfg.rays_per_view)
             groups.append((self.K[j], self.poses[j], uv))
             targets.append(self.images[j][idx])
         use_unseen = full and (lc.lambda_ac > 0 or lc.lambda_dc > 0)
@@ -167,15 +145,6 @@ class Trainer:
             losses["distortion"] = distortion([o for outs in by_target for o in outs], self.model.cfg.num_planes)
         else:
             losses["distortion"] = zero
-        if n_patch:
-            losses["curvature"] = torch.stack(
-                [
-                    depth_curvature(by_target[j], targets[j][:n_patch], cfg.patch_size, lc.curvature_edge_sigma)
-                    for j in range(n)
-                ]
-            ).mean()
-        else:
-            losses["curvature"] = zero
         smooth = [f.smoothness() for f in fields if hasattr(f, "smoothness")] if lc.lambda_smooth > 0 else []
         losses["smooth"] = torch.stack(smooth).mean() if smooth else zero
         losses["total"] = (
@@ -185,7 +154,6 @@ class Trainer:
             + lc.lambda_dc * losses["dc"]
             + lc.lambda_smooth * losses["smooth"]
             + lc.lambda_distortion * losses["distortion"]
-            + lc.lambda_curvature * losses["curvature"]
         )
         return losses
 
