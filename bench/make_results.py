@@ -90,7 +90,8 @@ FERN_STEPS = [
     (
         "curvature",
         "`fast` now + edge-aware curvature prior on rendered disparity over 8x8 patches, 0.5 (not adopted: "
-        "-0.13 dB, LPIPS-vgg -0.002; on small synthetic runs -0.04 to -0.07 dB halfway at 0.05; the option was removed; code: commit 47c4998)",
+        "-0.13 dB, LPIPS-vgg -0.002; on small synthetic runs -0.04 to -0.07 dB halfway at 0.05; the option was "
+        "removed; code: commit 47c4998)",
     ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
