@@ -33,7 +33,6 @@ import json
 import os
 import platform
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -45,15 +44,10 @@ from pathlib import Path
 
 import httpx
 from PIL import Image
+from servers import flush_redis, free_port, wait_ready, write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 MIB = 1 << 20
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def proc_status(pid: int) -> dict[str, int]:
@@ -117,13 +111,7 @@ class Server:
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
             )
-        for _ in range(300):
-            try:
-                if httpx.get(f"{self.url}/healthz", timeout=2).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                time.sleep(0.2)
-        raise RuntimeError(f"server did not start:\n{self.log.read_text()[-2000:]}")
+        wait_ready(self.url, "/healthz", 300, self.proc, self.log)
 
     def stop(self) -> None:
         try:
@@ -254,12 +242,8 @@ def main() -> None:
                     report["rows"].append(row)
                     print(json.dumps(row), flush=True)
     finally:
-        import redis
-
-        redis.Redis.from_url(args.redis).flushdb()  # the benchmark's own database (--redis)
-    out = Path(args.out)
-    out.write_text(json.dumps(report, indent=1) + "\n")
-    print(f"wrote {out}")
+        flush_redis(args.redis)
+    write_report(report, args.out)
 
 
 if __name__ == "__main__":

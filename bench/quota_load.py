@@ -40,7 +40,6 @@ import random
 import re
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -54,6 +53,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 from PIL import Image
+from servers import free_port, wait_ready, write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -69,12 +69,6 @@ LIMIT_OF_CODE = {
     "daily_job_quota_exceeded": "jobs_per_day",
     "render_rate_limited": "renders_per_second",
 }
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def pct(xs: list[float], q: float) -> float | None:
@@ -182,16 +176,8 @@ def main() -> None:
                 start_new_session=True,
             )
             procs.append(p)
-        for url in urls:
-            for _ in range(300):
-                try:
-                    if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
-                        break
-                except httpx.HTTPError:
-                    pass
-                time.sleep(0.2)
-            else:
-                raise SystemExit(f"API at {url} did not start; logs in {tmp}")
+        for url, p, i in zip(urls, procs, range(len(urls)), strict=True):
+            wait_ready(url, "/readyz", 300, p, tmp / f"api{i}.log")
         # warm-up: each replica loads each key's baked scene once (these renders are not counted)
         for url in urls:
             for key, owner in zip(keys, owners, strict=True):
@@ -310,11 +296,9 @@ def main() -> None:
         r.close()
         store.close()
         shutil.rmtree(tmp, ignore_errors=True)
-    out = Path(args.out)
-    out.write_text(json.dumps(report, indent=1) + "\n")
     res = report["results"]
     print(json.dumps({k: res[k] for k in ("requests", "server_errors", "refused_by_code", "checks")}, indent=1))
-    print(f"wrote {out}")
+    write_report(report, args.out)
 
 
 def summarize(records, args, elapsed, keys, owners, store, peak_unfinished) -> dict:

@@ -43,7 +43,6 @@ import json
 import os
 import platform
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -56,18 +55,13 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from servers import flush_redis, free_port, wait_ready, write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from cmc.cameras import CameraFile, camera_file_to_dict  # noqa: E402
 from cmc.datasets import load_llff  # noqa: E402
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def percentile(xs: list[float], q: float) -> float:
@@ -81,9 +75,25 @@ def camera_body(split, i: int) -> dict:
     return {**frame, "w": data["w"], "h": data["h"], "convention": "opengl"}
 
 
+def deployed_env(tmp: Path, redis_url: str, run: str) -> dict[str, str]:
+    """Environment of the deployed shape: Celery mode on ``redis_url``, data in ``tmp``, queues
+    of this run only, one API key (``bench-key``)."""
+    return {
+        **os.environ,
+        "PYTHONPATH": str(ROOT),
+        "CMC_MODE": "celery",
+        "CMC_BROKER_URL": redis_url,
+        "CMC_DATA_DIR": str(tmp),
+        "CMC_CPU_QUEUE": f"bench-cpu-{run}",
+        "CMC_GPU_QUEUE": f"bench-gpu-{run}",
+        "CMC_API_KEYS": "bench-key",
+    }
+
+
 def start_services(tmp: Path, env: dict, procs: list, port: int) -> None:
     """The API and one worker for both queues, each its own process, as in main()."""
     api = ["-m", "uvicorn", "service.app:create_app", "--factory", "--log-level", "warning", "--port", str(port)]
+    first = len(procs)
     for name, cmd in (
         ("api", api),
         ("worker", ["-m", "celery", "-A", "worker.celery_app", "worker", "-c", "1", "--loglevel", "WARNING",
@@ -95,14 +105,7 @@ def start_services(tmp: Path, env: dict, procs: list, port: int) -> None:
                 [sys.executable, *cmd], env=env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
             )
         )
-    for _ in range(200):
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.2)
-    raise RuntimeError(f"the API did not start: {(tmp / 'api.log').read_text()[-2000:]}")
+    wait_ready(f"http://127.0.0.1:{port}", "/readyz", 200, procs[first], tmp / "api.log")
 
 
 def timed(fn, repeats: int = 15) -> tuple[float, object]:
@@ -207,22 +210,11 @@ def load_bench(args) -> None:
     """The --load protocol (module docstring, 5-6)."""
     import shutil
 
-    import redis
-
     fern = Path(args.data).resolve()
     tmp = Path(tempfile.mkdtemp(prefix="cmc-service-load-"))
     run = uuid.uuid4().hex[:8]
     port = free_port()
-    env = {
-        **os.environ,
-        "PYTHONPATH": str(ROOT),
-        "CMC_MODE": "celery",
-        "CMC_BROKER_URL": args.redis,
-        "CMC_DATA_DIR": str(tmp),
-        "CMC_CPU_QUEUE": f"bench-cpu-{run}",
-        "CMC_GPU_QUEUE": f"bench-gpu-{run}",
-        "CMC_API_KEYS": "bench-key",
-    }
+    env = deployed_env(tmp, args.redis, run)
     settings = {k: v for k, v in env.items() if k.startswith("CMC_RENDER")}
     headers = {"Authorization": "Bearer bench-key"}
     url = f"http://127.0.0.1:{port}"
@@ -295,10 +287,8 @@ def load_bench(args) -> None:
                     os.killpg(p.pid, signal.SIGKILL)
                 except ProcessLookupError:
                     pass
-        redis.Redis.from_url(args.redis).flushdb()  # the benchmark's own database (--redis)
-    out = Path(args.out)
-    out.write_text(json.dumps(report, indent=1) + "\n")
-    print(f"wrote {out}")
+        flush_redis(args.redis)
+    write_report(report, args.out)
 
 
 def main() -> None:
@@ -322,16 +312,7 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="cmc-service-bench-"))
     run = uuid.uuid4().hex[:8]
     port = free_port()
-    env = {
-        **os.environ,
-        "PYTHONPATH": str(ROOT),
-        "CMC_MODE": "celery",
-        "CMC_BROKER_URL": args.redis,
-        "CMC_DATA_DIR": str(tmp),
-        "CMC_CPU_QUEUE": f"bench-cpu-{run}",
-        "CMC_GPU_QUEUE": f"bench-gpu-{run}",
-        "CMC_API_KEYS": "bench-key",
-    }
+    env = deployed_env(tmp, args.redis, run)
     headers = {"Authorization": "Bearer bench-key"}
     url = f"http://127.0.0.1:{port}"
     procs = []
@@ -357,12 +338,7 @@ def main() -> None:
     try:
         uvicorn = ["-m", "uvicorn", "service.app:create_app", "--factory", "--log-level", "warning"]
         start("api", [sys.executable, *uvicorn, "--port", str(port)])
-        for _ in range(200):
-            try:
-                if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                time.sleep(0.2)
+        wait_ready(url, "/readyz", 200)
         client = httpx.Client(base_url=url, headers=headers, timeout=120)
 
         # 1. uploads of the phone JPEGs
@@ -462,12 +438,9 @@ def main() -> None:
                 p.wait(15)
             except (ProcessLookupError, subprocess.TimeoutExpired):
                 os.killpg(p.pid, signal.SIGKILL)
-        import redis
 
-        redis.Redis.from_url(args.redis).flushdb()  # the benchmark's own database (--redis)
-    out = Path(args.out)
-    out.write_text(json.dumps(report, indent=1) + "\n")
-    print(f"wrote {out}")
+        flush_redis(args.redis)
+    write_report(report, args.out)
 
 
 if __name__ == "__main__":

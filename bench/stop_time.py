@@ -30,7 +30,6 @@ import json
 import os
 import platform
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -44,14 +43,10 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from servers import flush_redis, free_port, wait_ready, write_report  # noqa: E402
+
 from cmc.cameras import CameraFile, camera_file_to_dict  # noqa: E402
 from cmc.datasets import load_llff  # noqa: E402
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def fern_upload(fern: Path, steps: int) -> list:
@@ -66,18 +61,6 @@ def fern_upload(fern: Path, steps: int) -> list:
 def start(cmd: list[str], env: dict, log: Path) -> subprocess.Popen:
     with open(log, "wb") as out:
         return subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
-
-
-def wait_http(url: str, proc: subprocess.Popen, log: Path) -> None:
-    for _ in range(600):
-        assert proc.poll() is None, log.read_text()[-3000:]
-        try:
-            if httpx.get(f"{url}/healthz", timeout=2).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.2)
-    raise RuntimeError(f"no answer from {url}")
 
 
 def run(shape: str, args: argparse.Namespace, tmp: Path) -> dict:
@@ -99,7 +82,7 @@ def run(shape: str, args: argparse.Namespace, tmp: Path) -> dict:
         headers = {"Authorization": "Bearer bench-key"}
         api = [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory", "--log-level", "warning"]
         procs["api"] = start([*api, "--port", str(port)], env, tmp / f"{shape}-api.log")
-        wait_http(url, procs["api"], tmp / f"{shape}-api.log")
+        wait_ready(url, "/healthz", 600, procs["api"], tmp / f"{shape}-api.log")
         queues = f"{env['CMC_CPU_QUEUE']},{env['CMC_GPU_QUEUE']}"
         celery = [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker", "-c", "1", "-Q", queues]
         celery += ["--without-gossip", "--without-mingle", "--loglevel", "INFO"]
@@ -109,7 +92,7 @@ def run(shape: str, args: argparse.Namespace, tmp: Path) -> dict:
         env.pop("CMC_API_KEYS_FILE", None)
         serve = [sys.executable, "-m", "cmc.cli", "serve", "--log-level", "warning", "--data-dir", str(data)]
         procs["stopped"] = start([*serve, "--port", str(port)], env, tmp / f"{shape}-serve.log")
-        wait_http(url, procs["stopped"], tmp / f"{shape}-serve.log")
+        wait_ready(url, "/healthz", 600, procs["stopped"], tmp / f"{shape}-serve.log")
     client = httpx.Client(base_url=url, headers=headers, timeout=60)
     try:
         sid = client.post("/v1/scenes", files=fern_upload(Path(args.data), args.steps)).json()["id"]
@@ -199,12 +182,8 @@ def main() -> None:
             report["rows"].append(row)
             print(json.dumps(row), flush=True)
     finally:
-        import redis
-
-        redis.Redis.from_url(args.redis).flushdb()  # the benchmark's own database (--redis)
-    out = Path(args.out)
-    out.write_text(json.dumps(report, indent=1) + "\n")
-    print(f"wrote {out}")
+        flush_redis(args.redis)
+    write_report(report, args.out)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,54 @@
+"""What the service benchmarks share: a free port, waiting for a started server, the report.
+
+Imported by the bench/ scripts that start the API (run as ``python bench/NAME.py``, so this
+folder is on ``sys.path``).
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import httpx
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_ready(
+    url: str, path: str = "/readyz", tries: int = 300, proc: subprocess.Popen | None = None, log: Path | None = None
+) -> None:
+    """Poll ``url + path`` every 0.2 s until it answers 200; RuntimeError (with the end of
+    ``log``) when ``proc`` exits first or after ``tries`` polls."""
+    tail = lambda: log.read_text()[-3000:] if log is not None and log.exists() else ""  # noqa: E731
+    for _ in range(tries):
+        if proc is not None and proc.poll() is not None:
+            raise RuntimeError(f"the server at {url} exited:\n{tail()}")
+        try:
+            if httpx.get(url + path, timeout=2).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.2)
+    raise RuntimeError(f"no answer from {url}{path}:\n{tail()}")
+
+
+def flush_redis(redis_url: str) -> None:
+    """Empty the benchmark's own Redis database (its ``--redis`` URL names one apart)."""
+    import redis
+
+    redis.Redis.from_url(redis_url).flushdb()
+
+
+def write_report(report: dict, out: str | Path) -> None:
+    """Write ``report`` as indented JSON to ``out``."""
+    out = Path(out)
+    out.write_text(json.dumps(report, indent=1) + "\n")
+    print(f"wrote {out}")
