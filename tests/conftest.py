@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import os
+import shutil
 import uuid
 from collections.abc import Iterator
 
 import pytest
-from helpers import REDIS_URL
+from helpers import CHROMIUM_ARGS, REDIS_URL, browser_unavailable
 
 
 @pytest.fixture
@@ -31,3 +32,20 @@ def redis_prefix() -> Iterator[str]:
         if keys:
             r.delete(*keys)
         r.close()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """A headless Chromium (Debian's, or ``CMC_CHROMIUM``) driven by Playwright, one per module."""
+    chromium = os.environ.get("CMC_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        browser_unavailable("Debian's chromium is not installed (apt-get install -y chromium)")
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        browser_unavailable("playwright is not installed (pip install -e '.[dev]')")
+    with sync_playwright() as p:
+        # Playwright starts every launch with a fresh temporary profile (user data dir).
+        b = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS, headless=True)
+        yield b
+        b.close()

@@ -10,6 +10,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from cmc.cameras import CameraFile, Cameras, camera_file_to_dict
@@ -62,3 +63,23 @@ def render_body(cameras: Cameras, convention: str = "opengl") -> dict:
     data = camera_file_to_dict(CameraFile(cameras[:1], ["render"]), convention)
     frame = {k: v for k, v in data["frames"][0].items() if k != "file_path"}
     return {**frame, "w": data["w"], "h": data["h"], "convention": convention}
+
+
+# Headless Chromium of the browser tests (the `browser` fixture in conftest.py).
+CHROMIUM_ARGS = [
+    "--no-sandbox",  # runs as root in containers
+    "--use-angle=swiftshader",  # WebGL2 on the CPU (ANGLE -> SwiftShader Vulkan)
+    "--enable-unsafe-swiftshader",
+    "--disable-background-networking",  # the machine has no network: no update, sync or
+    "--disable-component-update",  # safe-browsing requests at all
+    "--disable-sync",
+    "--no-first-run",
+    "--disable-default-apps",
+]
+
+
+def browser_unavailable(message: str):
+    """Skip a browser test for ``message``; under CI (where the browser must be there) fail."""
+    if os.environ.get("CI", "").lower() not in ("", "0", "false"):
+        pytest.fail(f"{message} (CI is set: the browser tests must run)")
+    pytest.skip(message)

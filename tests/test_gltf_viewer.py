@@ -23,8 +23,8 @@ from urllib.parse import quote
 
 import numpy as np
 import pytest
+from helpers import browser_unavailable
 from PIL import Image
-from test_viewer import CHROMIUM_ARGS, _unavailable
 
 from cmc.baking import BakedScene, bake
 from cmc.cameras import convert_pose
@@ -78,28 +78,13 @@ def three() -> Path:
     ] != THREE_VERSION:
         npm = shutil.which("npm")
         if npm is None:
-            _unavailable("npm is not installed (apt-get install -y npm)")
+            browser_unavailable("npm is not installed (apt-get install -y npm)")
         THREE_DIR.mkdir(exist_ok=True)
         cmd = [npm, "install", "--prefix", str(THREE_DIR), f"three@{THREE_VERSION}", "--no-audit", "--no-fund"]
         done = subprocess.run(cmd + ["--ignore-scripts"], capture_output=True, text=True, timeout=300)
         if done.returncode != 0:
-            _unavailable(f"npm install three failed: {done.stderr[-500:]}")
+            browser_unavailable(f"npm install three failed: {done.stderr[-500:]}")
     return module
-
-
-@pytest.fixture(scope="module")
-def browser():
-    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
-    if chromium is None:
-        _unavailable("Debian's chromium is not installed (apt-get install -y chromium)")
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        _unavailable("playwright is not installed (pip install -e '.[dev]')")
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS, headless=True)
-        yield b
-        b.close()
 
 
 @pytest.fixture(scope="module")

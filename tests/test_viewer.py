@@ -12,7 +12,6 @@ from __future__ import annotations
 import functools
 import io
 import json
-import os
 import shutil
 import threading
 from dataclasses import replace
@@ -33,40 +32,6 @@ from cmc.training import Trainer
 
 VIEWER = Path(__file__).resolve().parent.parent / "service" / "static" / "viewer.html"
 W, H = 80, 60
-CHROMIUM_ARGS = [
-    "--no-sandbox",  # runs as root in containers
-    "--use-angle=swiftshader",  # WebGL2 on the CPU (ANGLE -> SwiftShader Vulkan)
-    "--enable-unsafe-swiftshader",
-    "--disable-background-networking",  # the machine has no network: no update, sync or
-    "--disable-component-update",  # safe-browsing requests at all
-    "--disable-sync",
-    "--no-first-run",
-    "--disable-default-apps",
-]
-
-
-def _unavailable(message: str):
-    if os.environ.get("CI", "").lower() not in ("", "0", "false"):
-        pytest.fail(f"{message} (CI is set: the browser tests must run)")
-    pytest.skip(message)
-
-
-@pytest.fixture(scope="module")
-def browser(tmp_path_factory):
-    chromium = os.environ.get("CMC_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
-    if chromium is None:
-        _unavailable("Debian's chromium is not installed (apt-get install -y chromium)")
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        _unavailable("playwright is not installed (pip install -e '.[dev]')")
-    with sync_playwright() as p:
-        # Playwright starts every launch with a fresh temporary profile (user data dir).
-        b = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS, headless=True)
-        yield b
-        b.close()
-
-
 @pytest.fixture(scope="module", autouse=True)
 def _browser_first(browser):
     """Skip (or fail under CI) before building the scene when there is no browser."""
