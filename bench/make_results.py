@@ -606,10 +606,10 @@ def main() -> None:
             "`estimate_poses` found from the full-resolution JPEGs. The held-out views' dataset poses are "
             "registered into frame (b) through the two reconstructions' 3D points: our SfM points and the "
             "dataset's sparse points seen at the same pixels of the three shared photos correspond "
-            "(`cmc.poses.corresponding_points`); each held-out camera is the pose that sees our points where "
-            "the dataset's camera sees the corresponding dataset points (`cmc.poses.register_camera`). No "
+            "(`cmc.alignment.corresponding_points`); each held-out camera is the pose that sees our points where "
+            "the dataset's camera sees the corresponding dataset points (`cmc.alignment.register_camera`). No "
             "held-out pixel is used. For comparison, `similarity` registers them with one similarity from the "
-            "three training cameras (`cmc.poses.similarity_from_cameras`). Both runs render with the dataset's "
+            "three training cameras (`cmc.alignment.similarity_from_cameras`). Both runs render with the dataset's "
             "intrinsics. Method and caveats: `bench/poses_e2e.md`.\n",
             f"- pose estimation: {e2e['pose_estimation']['wall_seconds']:.1f} s",
             f"- correspondences: {st['corresponding_points']} of {st['sfm_points']} SfM points "

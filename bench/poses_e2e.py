@@ -13,14 +13,14 @@ ways of aligning the two reconstructions are scored, neither looks at a held-out
 * ``structure`` (the target's number): through the 3D points. The dataset ships its sparse model
   (``sparse/0``: points and its SIMPLE_RADIAL camera). Our SfM points and the dataset's points that
   the three shared photos see at the same pixels are the same scene points
-  (:func:`cmc.poses.corresponding_points`; dataset points projected with the dataset's poses and
+  (:func:`cmc.alignment.corresponding_points`; dataset points projected with the dataset's poses and
   its distortion, ours where SfM observed them). A held-out view sees each dataset point where the
   dataset's pose and camera project it; its pose in frame (b) is the camera that sees the
-  corresponding points of (b) at those pixels (:func:`cmc.poses.register_camera`, LO-RANSAC P3P +
+  corresponding points of (b) at those pixels (:func:`cmc.alignment.register_camera`, LO-RANSAC P3P +
   refinement), as SfM would register that photo into (b) with perfect matches. Control: the same
   procedure on the training views must give back (b)'s own SfM poses.
 * ``similarity``: one similarity from the three training cameras
-  (:func:`cmc.poses.similarity_from_cameras`: rotation = chordal mean of ``R_gt_i R_est_i^T``,
+  (:func:`cmc.alignment.similarity_from_cameras`: rotation = chordal mean of ``R_gt_i R_est_i^T``,
   scale = ratio of the RMS centre spreads, translation from the centroids), applied as a pose
   transform (centre: scaled, rotated and shifted; orientation: rotated only).
 
@@ -53,6 +53,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from cmc.alignment import (
+    apply_similarity_to_poses,
+    corresponding_points,
+    invert_similarity,
+    register_camera,
+    similarity_from_cameras,
+)
 from cmc.baking import BakedScene, bake
 from cmc.bench import git_commit
 from cmc.cameras import Cameras
@@ -60,17 +67,7 @@ from cmc.config import preset_config
 from cmc.datasets import LLFFSplit, Scene, load_image, load_llff, save_image
 from cmc.geometry import mean_baseline
 from cmc.metrics import image_metrics
-from cmc.poses import (
-    PoseResult,
-    apply_similarity_to_poses,
-    corresponding_points,
-    estimate_poses,
-    invert_similarity,
-    read_colmap_cameras,
-    read_colmap_points,
-    register_camera,
-    similarity_from_cameras,
-)
+from cmc.poses import PoseResult, estimate_poses, read_colmap_cameras, read_colmap_points
 from cmc.training import Trainer
 
 METRICS = ("psnr", "ssim", "lpips_alex", "lpips_vgg")

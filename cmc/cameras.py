@@ -19,6 +19,7 @@ axes when the file says ``"convention": "opencv"``).
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -350,3 +351,31 @@ def load_camera_file(path: str | Path) -> CameraFile:
 def save_camera_file(cf: CameraFile, path: str | Path, convention: PoseConvention = "opengl") -> None:
     """Write ``cf`` as a transforms.json-shaped file."""
     Path(path).write_text(json.dumps(camera_file_to_dict(cf, convention), indent=1))
+
+
+def match_frames(file_paths: Sequence[str], photo_names: Sequence[Sequence[str]]) -> list[int]:
+    """Index of the cameras-file frame for each photo, matching by file name, then by stem.
+
+    Args:
+        file_paths: the frames' ``file_path`` values (any folder part is ignored).
+        photo_names: per photo, the names it answers to, the file name first (e.g. the upload's
+            original name, then a sanitised alias).
+    Raises:
+        CameraError: a photo no frame names, a photo named by several frames, or frames naming no photo.
+    """
+    keys = [Path(fp.replace("\\", "/")).name for fp in file_paths]
+    order = []
+    for names in photo_names:
+        hits = [f for f, key in enumerate(keys) if key == names[0]]
+        if not hits:
+            stems = {Path(n).stem for n in names}
+            hits = [f for f, key in enumerate(keys) if Path(key).stem in stems]
+        if not hits:
+            raise CameraError(f"no frame in the cameras file is for photo {names[0]} (frames: {', '.join(keys)})")
+        if len(hits) > 1:
+            raise CameraError(f"{len(hits)} frames in the cameras file name photo {names[0]}")
+        order.append(hits[0])
+    extra = sorted(set(range(len(keys))) - set(order))
+    if extra:
+        raise CameraError(f"frames {', '.join(keys[f] for f in extra)} match none of the uploaded photos")
+    return order

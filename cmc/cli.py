@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import sys
 from dataclasses import replace
@@ -18,8 +19,7 @@ from cmc.baking import BakedFormatError, BakedScene, bake
 from cmc.camera_paths import PATH_KINDS
 from cmc.cameras import CameraError, load_camera_file
 from cmc.config import PRESETS, preset_config, with_settings
-from cmc.datasets import WIDE_SCENES, SceneError, load_scene_folder, save_image
-from cmc.poses import register_cli
+from cmc.datasets import CAMERAS_FILE, WIDE_SCENES, SceneError, load_scene_folder, save_image
 from cmc.training import Progress, Trainer, TrainingCancelled
 
 
@@ -193,6 +193,40 @@ def cmd_demo(args: argparse.Namespace) -> None:
     print(f"outputs in {args.out}/")
 
 
+def cmd_poses(args: argparse.Namespace) -> None:
+    from cmc.poses import IMAGES_DIR, PoseOptions, estimate_poses, poses_from_client
+
+    out = Path(args.out)
+    scene_dir = out.parent if out.suffix.lower() == ".json" else out
+    options = PoseOptions(
+        long_side=args.long_side,
+        max_sift_size=args.max_sift_size,
+        seed=args.seed,
+        work_dir=args.work_dir,
+        convention=args.convention,
+        verbose=args.verbose,
+    )
+    if args.cameras:
+        result = poses_from_client(args.images, args.cameras, scene_dir, options)
+    else:
+        result = estimate_poses(args.images, scene_dir, options)
+    written = result.cameras_path
+    if out.suffix.lower() == ".json" and out.name != CAMERAS_FILE:
+        shutil.copyfile(written, out)
+        written = out
+    nf = result.camera_file.near_far
+    assert nf is not None
+    cams = result.camera_file.cameras
+    print(
+        f"poses ({result.stats['method']}): {len(cams)} photos at {cams.width}x{cams.height}, "
+        f"near {nf[:, 0].min():.4g}, far {nf[:, 1].max():.4g}"
+    )
+    for stage, seconds in result.timings.items():
+        print(f"  {stage:<14}{seconds:8.2f} s")
+    images = scene_dir / IMAGES_DIR
+    print(f"wrote {written} and {len(result.image_paths)} images in {images}; train with: cmc train {scene_dir}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="cmc", description="Few-shot novel view synthesis with per-view MPIs (CMC).")
     sub = p.add_subparsers(dest="command", required=True)
@@ -258,7 +292,27 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
     d.add_argument("--steps", type=int, default=300, help="training steps (default 300)")
     d.set_defaults(func=cmd_demo)
-    register_cli(sub)
+    ps = sub.add_parser(
+        "poses",
+        help="cameras and near/far for a few photos (pycolmap SfM, or the app's poses); writes a scene folder",
+    )
+    ps.add_argument("images", nargs="+", help="the photos (JPEG, PNG, WebP or HEIC)")
+    ps.add_argument(
+        "--out",
+        required=True,
+        help="scene folder to write (images/, cameras.json, originals/); a path ending in .json names "
+        "the cameras file and its folder is the scene folder",
+    )
+    ps.add_argument("--cameras", help="the app's cameras (transforms.json shape) instead of structure from motion")
+    ps.add_argument("--long-side", type=int, default=504, help="long side of the working images, pixels (default 504)")
+    ps.add_argument("--max-sift-size", type=int, default=1600, help="long side SIFT runs at, pixels (default 1600)")
+    ps.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    ps.add_argument(
+        "--convention", choices=["opengl", "opencv"], help="camera axes to write (default opengl, or the input file's)"
+    )
+    ps.add_argument("--work-dir", help="keep COLMAP's database and sparse model here (default: a temporary folder)")
+    ps.add_argument("--verbose", action="store_true", help="show COLMAP's log")
+    ps.set_defaults(func=cmd_poses)
     _register_service_commands(sub)
     return p
 

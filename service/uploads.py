@@ -179,9 +179,7 @@ def check_images(upload: Upload, settings: Settings) -> list[str]:
 
     n = len(upload.images)
     if n < settings.min_images:
-        raise APIError(
-            422, "too_few_images", f"send at least {settings.min_images} images as 'images' parts, got {n}"
-        )
+        raise APIError(422, "too_few_images", f"send at least {settings.min_images} images as 'images' parts, got {n}")
     names, sizes = [], []
     for k, part in enumerate(upload.images):
         label = part.filename
@@ -233,9 +231,7 @@ def parse_callback_url(upload: Upload, settings: Settings) -> str | None:
     from service.webhooks import CallbackRefused, resolve_callback
 
     if not settings.webhook_secret:
-        raise APIError(
-            422, "webhooks_not_configured", "this server sends no webhooks (CMC_WEBHOOK_SECRET is not set)"
-        )
+        raise APIError(422, "webhooks_not_configured", "this server sends no webhooks (CMC_WEBHOOK_SECRET is not set)")
     try:
         url = upload.callback_url.decode("utf-8").strip()
         resolve_callback(url, settings.webhook_allow_private)
@@ -251,8 +247,7 @@ def parse_cameras(upload: Upload, stored_names: list[str]) -> dict | None:
     ``file_path`` renamed to our storage name (the worker reads that copy)."""
     if upload.cameras is None:
         return None
-    from cmc.cameras import CameraError, camera_file_from_dict
-    from cmc.poses import match_frames
+    from cmc.cameras import CameraError, camera_file_from_dict, match_frames
 
     try:
         data = json.loads(upload.cameras)

@@ -1,4 +1,4 @@
-"""Tests of aligning two reconstructions (cmc.poses):
+"""Tests of aligning two reconstructions (cmc.alignment):
 
 * the similarity from cameras (``similarity_from_cameras``, ``apply_similarity_to_poses``): a known
   similarity applied to random cameras is recovered exactly, mapped poses stay rigid and keep their
@@ -17,18 +17,16 @@ import numpy as np
 import pytest
 from helpers import SHARED_DIR
 
-from cmc.cameras import Cameras, cameras_from_llff
-from cmc.datasets import synthetic_cameras
-from cmc.poses import (
-    PoseEstimationError,
+from cmc.alignment import (
     apply_similarity_to_poses,
     corresponding_points,
     invert_similarity,
-    read_colmap_cameras,
-    read_colmap_points,
     register_camera,
     similarity_from_cameras,
 )
+from cmc.cameras import Cameras, cameras_from_llff
+from cmc.datasets import synthetic_cameras
+from cmc.poses import PoseEstimationError, read_colmap_cameras, read_colmap_points
 
 FERN_SPARSE = SHARED_DIR / "datasets" / "llff" / "fern" / "sparse" / "0"
 

@@ -20,6 +20,7 @@ import pytest
 from helpers import SHARED_DIR, rotation
 from PIL import ExifTags, Image, ImageDraw, ImageFilter
 
+from cmc.alignment import similarity_from_cameras
 from cmc.cameras import CameraError, CameraFile, Cameras, camera_file_to_dict, cameras_from_llff
 from cmc.cli import main
 from cmc.datasets import DEFAULT_LAYERS, SceneError, load_scene_folder, render_layers, synthetic_cameras
@@ -30,7 +31,6 @@ from cmc.poses import (
     depth_range,
     estimate_poses,
     poses_from_client,
-    similarity_from_cameras,
     triangulate_pair,
 )
 

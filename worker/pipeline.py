@@ -236,7 +236,7 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     from cmc.cameras import CameraError
     from cmc.datasets import SceneError
     from cmc.eta import REFERENCE_POSES_S
-    from cmc.poses import PoseEstimationCancelled, PoseEstimationError, estimate_poses, poses_from_client
+    from cmc.poses import PoseEstimationCancelled, PoseEstimationError, PoseOptions, estimate_poses, poses_from_client
 
     later_s = _training_prior_s(rec.options)
     t0 = time.perf_counter()
@@ -252,21 +252,20 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     hb.flush()
     scene_dir = _fresh_dir(ctx, f"{rec.id}/scene")
     uploads = [ctx.storage.path(f"{rec.id}/uploads/{name}") for name in rec.upload_files]
-    common: dict[str, Any] = dict(
+    options = PoseOptions(
         long_side=int(rec.options["resolution"]),
         seed=int(rec.options["seed"]),
-        should_stop=hb.should_stop,
         keep_originals=False,  # storage keeps the uploads
         max_pixels=ctx.settings.max_image_pixels,
         convention="opencv",
-        on_stage=on_stage,
     )
+    hooks = dict(should_stop=hb.should_stop, on_stage=on_stage)
     try:
         if rec.has_cameras:
             cameras = json.loads(ctx.storage.read_bytes(f"{rec.id}/uploads/cameras.json"))
-            result = poses_from_client(uploads, cameras, scene_dir, **common)
+            result = poses_from_client(uploads, cameras, scene_dir, options, **hooks)
         else:
-            result = estimate_poses(uploads, scene_dir, **common)
+            result = estimate_poses(uploads, scene_dir, options, **hooks)
     except PoseEstimationCancelled:
         raise JobStopped(hb.reason or "cancelled") from None
     except PoseEstimationError as e:
