@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from cmc.cameras import nearest_rotation
-from cmc.poses import PoseEstimationError
+from cmc.errors import PoseEstimationError
 from cmc.poses.colmap import import_pycolmap, world_from_cam
 
 

@@ -48,14 +48,11 @@ from cmc.rendering import ImageOutput, MPIFrame, blend_selection, render_image
 
 if TYPE_CHECKING:
     from cmc.texture_kernel import MPIGeometry, PackedTextures
+from cmc.errors import BakedFormatError
 
 FORMAT = "cmc-mpi"
 VERSION = 1
 MANIFEST = "mpi.json"
-
-
-class BakedFormatError(ValueError):
-    """A baked folder that cannot be read; the message names the problem."""
 
 
 @torch.no_grad()

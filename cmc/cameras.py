@@ -26,6 +26,8 @@ from typing import Literal
 
 import numpy as np
 
+from cmc.errors import CameraError
+
 PoseConvention = Literal["opencv", "opengl"]
 
 # Focal lengths in image widths (fl_x) / heights (fl_y): fields of view from about 169 down to 0.6 degrees.
@@ -35,10 +37,6 @@ MAX_PRINCIPAL_OFFSET = 10.0
 
 # Flips the y and z camera axes: maps OpenCV camera coordinates to OpenGL ones and back.
 _CV_GL_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-class CameraError(ValueError):
-    """A camera file or camera parameters that cannot be used; the message names the problem."""
 
 
 @dataclass(frozen=True)

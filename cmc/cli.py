@@ -15,11 +15,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from cmc.baking import BakedFormatError, BakedScene, bake
+from cmc.baking import BakedScene, bake
 from cmc.camera_paths import PATH_KINDS
-from cmc.cameras import CameraError, load_camera_file
+from cmc.cameras import load_camera_file
 from cmc.config import PRESETS, preset_config, with_settings
-from cmc.datasets import CAMERAS_FILE, WIDE_SCENES, SceneError, load_scene_folder, save_image
+from cmc.datasets import CAMERAS_FILE, WIDE_SCENES, load_scene_folder, save_image
+from cmc.errors import CMCError, ConfigError
 from cmc.training import Progress, Trainer, TrainingCancelled
 
 
@@ -42,7 +43,7 @@ def _device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError("--device cuda asked for, but torch sees no CUDA device")
+        raise ConfigError("--device cuda asked for, but torch sees no CUDA device")
     return torch.device(name)
 
 
@@ -81,9 +82,9 @@ def cmd_train(args: argparse.Namespace) -> None:
 
 def cmd_render(args: argparse.Namespace) -> None:
     if (args.cameras is None) == (args.path is None):
-        raise ValueError("give exactly one of --cameras FILE (still views) or --path spiral|orbit|dolly (a video)")
+        raise ConfigError("give exactly one of --cameras FILE (still views) or --path spiral|orbit|dolly (a video)")
     if args.path is None and (args.frames is not None or args.fps is not None):
-        raise ValueError("--frames and --fps apply to --path videos only")
+        raise ConfigError("--frames and --fps apply to --path videos only")
     baked = BakedScene.load(args.baked)
     if args.path is not None:
         _render_video(baked, args)
@@ -109,9 +110,9 @@ def _render_video(baked: BakedScene, args: argparse.Namespace) -> None:
     frames = DEFAULT_FRAMES if args.frames is None else args.frames
     fps = DEFAULT_FPS if args.fps is None else args.fps
     if frames < 1:
-        raise ValueError(f"--frames must be at least 1, got {frames}")
+        raise ConfigError(f"--frames must be at least 1, got {frames}")
     if not fps > 0:
-        raise ValueError(f"--fps must be positive, got {fps}")
+        raise ConfigError(f"--fps must be positive, got {fps}")
     out = Path(args.out)
     if out.is_dir():
         out = out / f"{args.path}.mp4"
@@ -136,10 +137,10 @@ def cmd_bench(args: argparse.Namespace) -> None:
     from cmc.bench import run_llff_bench, run_synthetic_bench, write_report
 
     if args.dataset == "llff" and not args.data:
-        raise ValueError("the llff benchmark needs --data (the folder holding the LLFF scene folders)")
+        raise ConfigError("the llff benchmark needs --data (the folder holding the LLFF scene folders)")
     lpips_dir = args.lpips_weights or os.environ.get("CMC_LPIPS_DIR")
     if not lpips_dir:
-        raise ValueError("LPIPS weights needed: pass --lpips-weights DIR or set CMC_LPIPS_DIR")
+        raise ConfigError("LPIPS weights needed: pass --lpips-weights DIR or set CMC_LPIPS_DIR")
     device = _device(args.device)
     base = _config(args)
     variants = {"": base}
@@ -331,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         args.func(args)
-    except (SceneError, CameraError, BakedFormatError, ValueError, FileNotFoundError) as e:
+    except (CMCError, FileNotFoundError) as e:
         print(f"cmc {args.command}: error: {e}", file=sys.stderr)
         return 2
     except TrainingCancelled as e:

@@ -10,6 +10,7 @@ import json
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from typing import Any, Literal
 
+from cmc.errors import ConfigError
 from cmc.fields import MLPFieldConfig, PyramidFieldConfig
 
 Preset = Literal["paper", "fast"]
@@ -112,7 +113,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
         )
         cfg = TrainConfig(preset="fast", loss=loss)
     else:
-        raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+        raise ConfigError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
     return replace(cfg, **overrides)
 
 
@@ -120,12 +121,12 @@ def with_settings(cfg: TrainConfig, settings: list[str]) -> TrainConfig:
     """``cfg`` with dotted ``KEY=VALUE`` overrides applied, e.g. ``loss.lambda_ac=0.5``.
 
     Values are parsed as JSON (numbers, true/false, lists) where they parse, else kept as text,
-    and must have the type of the field they replace; unknown keys raise ValueError.
+    and must have the type of the field they replace; unknown keys raise ConfigError.
     """
     for item in settings:
         key, sep, text = item.partition("=")
         if not sep:
-            raise ValueError(f"setting {item!r} is not KEY=VALUE")
+            raise ConfigError(f"setting {item!r} is not KEY=VALUE")
         try:
             value: Any = json.loads(text)
         except json.JSONDecodeError:
@@ -137,7 +138,7 @@ def with_settings(cfg: TrainConfig, settings: list[str]) -> TrainConfig:
 def _replace_path(obj: Any, path: list[str], value: Any, key: str) -> Any:
     name = path[0]
     if not is_dataclass(obj) or name not in {f.name for f in fields(obj)}:
-        raise ValueError(f"unknown setting {key!r}")
+        raise ConfigError(f"unknown setting {key!r}")
     current = getattr(obj, name)
     if len(path) > 1:
         return replace(obj, **{name: _replace_path(current, path[1:], value, key)})
@@ -146,5 +147,5 @@ def _replace_path(obj: Any, path: list[str], value: Any, key: str) -> Any:
     elif isinstance(current, float) and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
     if type(value) is not type(current):
-        raise ValueError(f"setting {key!r} needs a {type(current).__name__}, got {value!r}")
+        raise ConfigError(f"setting {key!r} needs a {type(current).__name__}, got {value!r}")
     return replace(obj, **{name: value})

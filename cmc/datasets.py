@@ -22,12 +22,9 @@ from cmc.cameras import (
     look_at,
     save_camera_file,
 )
+from cmc.errors import SceneError
 
 CAMERAS_FILE = "cameras.json"
-
-
-class SceneError(ValueError):
-    """A scene that cannot be trained on; the message names the problem."""
 
 
 @dataclass

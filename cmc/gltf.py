@@ -38,6 +38,7 @@ from PIL import Image
 
 from cmc.camera_paths import mean_pose
 from cmc.cameras import convert_pose
+from cmc.errors import ConfigError
 
 GLB_MAGIC, GLB_VERSION, CHUNK_JSON, CHUNK_BIN = 0x46546C67, 2, 0x4E4F534A, 0x004E4942
 FLOAT, UNSIGNED_SHORT = 5126, 5123
@@ -109,9 +110,7 @@ def _column_major(m: np.ndarray) -> list[float]:
     return [float(x) for x in np.asarray(m, dtype=np.float64).T.reshape(-1)]
 
 
-def export_glb(
-    baked: str | Path, mpi: int | None = None, camera_names: list[str] | None = None
-) -> tuple[bytes, int]:
+def export_glb(baked: str | Path, mpi: int | None = None, camera_names: list[str] | None = None) -> tuple[bytes, int]:
     """The GLB of baked folder ``baked`` (mpi.json + atlases): MPI ``mpi`` (default
     :func:`nearest_mpi`) and every input camera. Returns (file bytes, the MPI's index)."""
     from cmc.baking import MANIFEST, BakedFormatError
@@ -124,10 +123,10 @@ def export_glb(
     entries = manifest["mpis"]
     index = nearest_mpi(manifest) if mpi is None else mpi
     if not 0 <= index < len(entries):
-        raise ValueError(f"mpi must be 0 to {len(entries) - 1}, got {index}")
+        raise ConfigError(f"mpi must be 0 to {len(entries) - 1}, got {index}")
     names = camera_names or [f"view_{i}" for i in range(len(entries))]
     if len(names) != len(entries):
-        raise ValueError(f"{len(names)} camera names for {len(entries)} cameras")
+        raise ConfigError(f"{len(names)} camera names for {len(entries)} cameras")
     W, H, near, far = int(manifest["width"]), int(manifest["height"]), float(manifest["near"]), float(manifest["far"])
     e = entries[index]
     K, pose = np.array(e["K"], dtype=np.float64), np.array(e["world_from_cam"], dtype=np.float64)

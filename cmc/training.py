@@ -24,6 +24,7 @@ import torch
 
 from cmc.config import TrainConfig
 from cmc.datasets import Scene, validate_scene
+from cmc.errors import CheckpointError
 from cmc.eta import TrainingETA
 from cmc.geometry import sample_virtual_pose
 from cmc.losses import (
@@ -192,9 +193,9 @@ class Trainer:
     def load_checkpoint(self, path: str | Path) -> None:
         ckpt = torch.load(path, map_location=self.device, weights_only=False)
         if ckpt.get("version") != CHECKPOINT_VERSION:
-            raise ValueError(f"checkpoint {path} has version {ckpt.get('version')}, expected {CHECKPOINT_VERSION}")
+            raise CheckpointError(f"checkpoint {path} has version {ckpt.get('version')}, expected {CHECKPOINT_VERSION}")
         if ckpt["config"] != self.cfg.to_dict():
-            raise ValueError(f"checkpoint {path} was written with a different training configuration")
+            raise CheckpointError(f"checkpoint {path} was written with a different training configuration")
         self.model.load_state_dict(ckpt["model"])
         self.optimizer.load_state_dict(ckpt["optimizer"])
         self.step = int(ckpt["step"])

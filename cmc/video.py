@@ -18,6 +18,7 @@ import numpy as np
 
 from cmc.baking import BakedScene
 from cmc.camera_paths import PATH_KINDS, PathKind, camera_path
+from cmc.errors import ConfigError
 
 DEFAULT_FRAMES = 120
 DEFAULT_FPS = 30
@@ -34,7 +35,7 @@ def path_cameras(
     """
     w, h = int(width or baked.width), int(height or baked.height)
     if w < 2 or h < 2:
-        raise ValueError(f"video size must be at least 2x2, got {w}x{h}")
+        raise ConfigError(f"video size must be at least 2x2, got {w}x{h}")
     K = np.diag([w / baked.width, h / baked.height, 1.0]) @ baked.frames[0].K.cpu().numpy().astype(np.float64)
     refs = np.stack([f.world_from_ref.cpu().numpy().astype(np.float64) for f in baked.frames])
     poses = camera_path(kind, refs, baked.near, baked.far, num_frames)
@@ -66,9 +67,9 @@ def render_path_video(
     import imageio_ffmpeg
 
     if kind not in PATH_KINDS:
-        raise ValueError(f"unknown camera path {kind!r}; use one of {', '.join(PATH_KINDS)}")
+        raise ConfigError(f"unknown camera path {kind!r}; use one of {', '.join(PATH_KINDS)}")
     if not fps > 0:
-        raise ValueError(f"fps must be positive, got {fps}")
+        raise ConfigError(f"fps must be positive, got {fps}")
     out = Path(out_path)
     K, poses, w, h = path_cameras(baked, kind, num_frames, width, height)
     # A unique temporary name beside the target (same file system, so the rename is atomic): two

@@ -10,6 +10,8 @@ import socket
 from pathlib import Path
 from typing import Any
 
+from cmc.errors import ConfigError
+
 
 def _is_loopback(host: str) -> bool:
     try:
@@ -28,7 +30,7 @@ def cmd_serve(args: argparse.Namespace) -> None:
     settings = load_settings(data_dir=Path(args.data_dir), mode="embedded")
     keys = KeyRing.load(settings.api_keys, settings.api_keys_file)
     if keys.open and not _is_loopback(args.host):
-        raise ValueError(
+        raise ConfigError(
             f"refusing to listen on {args.host} without API keys: set CMC_API_KEYS or CMC_API_KEYS_FILE "
             "(see cmc new-api-key), or listen on 127.0.0.1"
         )

@@ -129,3 +129,24 @@ def test_bench_synthetic_reports_halfway_and_near_views(tmp_path, capsys):
     assert "| cards | halfway |" in out.with_suffix(".md").read_text()
     sheet = load_image(tmp_path / "runs" / "fast" / "cards" / "cards_half01_sheet.png")
     assert sheet.shape == (3 * 189, 5 * 252, 3)
+
+
+def test_user_errors_are_cmc_errors_and_bugs_stay_bugs(tmp_path, capsys, monkeypatch):
+    """The CLI reports CMCError (and missing files) as an error line; any other ValueError is a
+    bug and propagates with its traceback."""
+    import pytest
+
+    import cmc.cli
+    from cmc.errors import CMCError, ConfigError
+
+    _expect_error(["export", str(tmp_path), "--out", str(tmp_path / "x.glb")], capsys, "mpi.json")
+    monkeypatch.setattr(cmc.cli, "cmd_export", lambda args: (_ for _ in ()).throw(ConfigError("bad option")))
+    _expect_error(["export", str(tmp_path), "--out", str(tmp_path / "x.glb")], capsys, "bad option")
+    assert issubclass(ConfigError, CMCError) and issubclass(CMCError, ValueError)
+
+    def bug(args):
+        raise ValueError("a programming error")
+
+    monkeypatch.setattr(cmc.cli, "cmd_export", bug)
+    with pytest.raises(ValueError, match="a programming error"):
+        main(["export", str(tmp_path), "--out", str(tmp_path / "x.glb")])

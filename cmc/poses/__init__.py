@@ -19,11 +19,12 @@ bounds are camera z in scene units. Aligning two reconstructions (benchmarks) is
 :mod:`cmc.alignment`; the ``cmc poses`` command is in :mod:`cmc.cli`.
 """
 
+from cmc.errors import PoseEstimationError
 from cmc.poses.bounds import depth_range, triangulate_pair
 from cmc.poses.client import poses_from_client
 from cmc.poses.colmap import cameras_from_colmap, read_colmap_cameras, read_colmap_points, sparse_points_from_colmap
 from cmc.poses.intake import IMAGES_DIR, ORIGINALS_DIR
-from cmc.poses.options import PoseEstimationCancelled, PoseEstimationError, PoseOptions, PoseResult, SparsePoints
+from cmc.poses.options import PoseEstimationCancelled, PoseOptions, PoseResult, SparsePoints
 from cmc.poses.sfm import estimate_poses
 
 __all__ = [

@@ -9,8 +9,9 @@ from typing import Any
 import numpy as np
 
 from cmc.cameras import CameraError, Cameras
+from cmc.errors import PoseEstimationError
 from cmc.poses.intake import Matches, Photos
-from cmc.poses.options import SUGGESTION, PoseEstimationError, SparsePoints
+from cmc.poses.options import SUGGESTION, SparsePoints
 
 NEAR_FAR_PERCENTILES = (0.5, 99.5)  # robust extremes of the per-view point depths ...
 NEAR_FAR_MARGINS = (0.9, 1.1)  # ... widened by these factors so the MPI planes cover the scene

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from cmc.cameras import CameraError, Cameras, PoseConvention, camera_file_from_dict, load_camera_file, match_frames
+from cmc.errors import PoseEstimationError
 from cmc.poses.bounds import near_far_by_triangulation
 from cmc.poses.colmap import Cancel, import_pycolmap, quiet
 from cmc.poses.intake import (
@@ -26,7 +27,7 @@ from cmc.poses.intake import (
     working_folder,
     write_photos,
 )
-from cmc.poses.options import PoseEstimationError, PoseOptions, PoseResult
+from cmc.poses.options import PoseOptions, PoseResult
 
 
 def poses_from_client(

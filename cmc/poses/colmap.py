@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from cmc.cameras import CameraError, Cameras
-from cmc.poses.options import PoseEstimationCancelled, PoseEstimationError, SparsePoints
+from cmc.errors import PoseEstimationError
+from cmc.poses.options import PoseEstimationCancelled, SparsePoints
 
 
 def cameras_from_colmap(reconstruction: Any, image_names: Sequence[str]) -> Cameras:

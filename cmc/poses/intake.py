@@ -22,9 +22,10 @@ import numpy as np
 
 from cmc.cameras import CameraFile, Cameras, PoseConvention, save_camera_file
 from cmc.datasets import CAMERAS_FILE, SceneError
+from cmc.errors import PoseEstimationError
 from cmc.images import PhotoInfo, load_resized, read_photo_info, resized_size, save_png
 from cmc.poses.colmap import Cancel
-from cmc.poses.options import PoseEstimationError, PoseResult, SparsePoints
+from cmc.poses.options import PoseResult, SparsePoints
 
 IMAGES_DIR = "images"
 ORIGINALS_DIR = "originals"

@@ -1,4 +1,4 @@
-"""What pose estimation takes and gives: :class:`PoseOptions`, :class:`PoseResult`, the errors.
+"""What pose estimation takes and gives: :class:`PoseOptions`, :class:`PoseResult`, cancellation.
 
 Conventions are :mod:`cmc.cameras`' (OpenCV axes, camera-to-world, pixel corner at 0); depth
 bounds are camera z in scene units.
@@ -21,10 +21,6 @@ SUGGESTION = (
     "same subject in view) of a textured scene (avoid blank walls, glass and reflections), or send "
     "camera poses with a cameras file."
 )
-
-
-class PoseEstimationError(ValueError):
-    """Poses could not be estimated from these photos; the message names the photos and a remedy."""
 
 
 class PoseEstimationCancelled(Exception):

@@ -9,6 +9,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from cmc.errors import PoseEstimationError
 from cmc.poses.bounds import near_far_from_points
 from cmc.poses.colmap import Cancel, cameras_from_colmap, import_pycolmap, quiet, sparse_points_from_colmap
 from cmc.poses.intake import (
@@ -27,7 +28,7 @@ from cmc.poses.intake import (
     working_folder,
     write_photos,
 )
-from cmc.poses.options import SUGGESTION, PoseEstimationError, PoseOptions, PoseResult
+from cmc.poses.options import SUGGESTION, PoseOptions, PoseResult
 
 
 def estimate_poses(
