@@ -22,7 +22,7 @@ from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.auth import KeyRing
-from service.errors import APIError, not_found
+from service.errors import APIError, ErrorCode, not_found
 from service.jobs import JobQueue
 from service.metrics import Metrics
 from service.quotas import STATE_KEY, Quotas, headers_of
@@ -192,7 +192,7 @@ def _scene(svc: Services, scene_id: str, owner: str) -> SceneRecord:
 def _ready_scene(svc: Services, scene_id: str, owner: str) -> SceneRecord:
     rec = _scene(svc, scene_id, owner)
     if rec.status != "ready":
-        raise APIError(409, "scene_not_ready", f"the scene is {rec.status}", {"status": rec.status})
+        raise APIError(409, ErrorCode.scene_not_ready, f"the scene is {rec.status}", {"status": rec.status})
     return rec
 
 
@@ -225,14 +225,14 @@ def _camera(body: RenderCamera, settings: Settings) -> tuple[np.ndarray, np.ndar
     from cmc.cameras import CameraError, camera_file_from_dict
 
     if body.w * body.h > settings.max_render_pixels:
-        raise APIError(422, "render_too_large", f"w * h must be at most {settings.max_render_pixels} pixels")
+        raise APIError(422, ErrorCode.render_too_large, f"w * h must be at most {settings.max_render_pixels} pixels")
     frame = body.model_dump(exclude_none=True)
     data = {k: v for k, v in frame.items() if k != "transform_matrix"}
     data["frames"] = [{"file_path": "render", "transform_matrix": frame["transform_matrix"]}]
     try:
         cams = camera_file_from_dict(data).cameras
     except CameraError as e:
-        raise APIError(422, "invalid_camera", str(e).replace("frame 0: ", "")) from None
+        raise APIError(422, ErrorCode.invalid_cameras, str(e).replace("frame 0: ", "")) from None
     return cams.K[0], cams.world_from_cam[0], body.w, body.h
 
 
@@ -259,8 +259,8 @@ _UPLOAD_BODY = {
                         },
                         "options": {
                             "type": "string",
-                            "description": "optional JSON, e.g. {\"preset\": \"fast\", \"steps\": 400, "
-                            "\"resolution\": 504, \"seed\": 0} (see SceneOptions)",
+                            "description": 'optional JSON, e.g. {"preset": "fast", "steps": 400, '
+                            '"resolution": 504, "seed": 0} (see SceneOptions)',
                         },
                         "callback_url": {
                             "type": "string",
@@ -339,7 +339,9 @@ async def _create_scene(
             existing = await run_in_threadpool(svc.store.find_by_idempotency_key, owner, idempotency_key)
             if existing is not None:
                 if existing.request_digest != upload.digest:
-                    raise APIError(409, "idempotency_conflict", "this Idempotency-Key was used for a different upload")
+                    raise APIError(
+                        409, ErrorCode.idempotency_conflict, "this Idempotency-Key was used for a different upload"
+                    )
                 svc.storage.delete_scene(scene_id)
                 return _created(existing, replayed=True)
         stored = await asyncio.wrap_future(svc.intake.submit(check_images, upload, s))
@@ -363,7 +365,7 @@ async def _create_scene(
         )
     except IdempotencyConflict as e:
         svc.storage.delete_scene(scene_id)
-        raise APIError(409, "idempotency_conflict", str(e)) from None
+        raise APIError(409, ErrorCode.idempotency_conflict, str(e)) from None
     except BaseException:
         svc.storage.delete_scene(scene_id)
         raise
@@ -376,7 +378,7 @@ async def _create_scene(
         log.exception("could not queue scene %s", rec.id)
         svc.store.purge(rec.id)
         svc.storage.delete_scene(rec.id)
-        raise APIError(503, "queue_unavailable", "the job queue is unavailable; retry shortly") from None
+        raise APIError(503, ErrorCode.queue_unavailable, "the job queue is unavailable; retry shortly") from None
     return _created(rec, replayed=False)
 
 
@@ -409,7 +411,7 @@ def list_scenes(
             t, i = json.loads(base64.urlsafe_b64decode(cursor.encode()))
             before = (float(t), str(i))
         except Exception:
-            raise APIError(422, "invalid_cursor", "cursor is not one this API returned") from None
+            raise APIError(422, ErrorCode.invalid_cursor, "cursor is not one this API returned") from None
     recs = svc.store.list(owner, limit + 1, before)
     page = recs[:limit]
     return SceneList(items=[scene_out(r) for r in page], next_cursor=_cursor(page[-1]) if len(recs) > limit else None)
@@ -446,7 +448,7 @@ def get_cameras(
     path = svc.storage.path(f"{scene_id}/scene/cameras.json")
     if rec.phase == "poses" or not path.exists():
         message = f"camera poses are not estimated yet ({rec.status})"
-        raise APIError(409, "scene_not_ready", message, {"status": rec.status})
+        raise APIError(409, ErrorCode.scene_not_ready, message, {"status": rec.status})
     cf = load_camera_file(path)
     # working images are named after our storage names; answer with the client's names
     by_stem = {f.rsplit(".", 1)[0]: name for f, name in zip(rec.upload_files, rec.upload_names, strict=True)}
@@ -504,7 +506,7 @@ async def render_view(
 ) -> Response:
     media = negotiate(accept, ["image/png", "image/jpeg"])
     if media is None:
-        raise APIError(406, "not_acceptable", "this endpoint returns image/png or image/jpeg")
+        raise APIError(406, ErrorCode.not_acceptable, "this endpoint returns image/png or image/jpeg")
     await run_in_threadpool(_ready_scene, svc, scene_id, owner)
     K, pose, w, h = _camera(camera, svc.settings)
     body = await svc.render_queue.run(lambda: encode_image(svc.renders.render(scene_id, K, pose, w, h).rgb, media))
@@ -537,7 +539,7 @@ async def render_depth(
 ) -> Response:
     media = "image/png" if preview else negotiate(accept, ["image/png", "application/x-npy"])
     if media is None:
-        raise APIError(406, "not_acceptable", "this endpoint returns image/png or application/x-npy")
+        raise APIError(406, ErrorCode.not_acceptable, "this endpoint returns image/png or application/x-npy")
     await run_in_threadpool(_ready_scene, svc, scene_id, owner)
     K, pose, w, h = _camera(camera, svc.settings)
 
@@ -607,7 +609,7 @@ async def export_glb(
     manifest = json.loads(svc.storage.read_bytes(f"{scene_id}/baked/mpi.json"))
     count = len(manifest["mpis"])
     if mpi is not None and mpi >= count:
-        raise APIError(422, "invalid_mpi", f"mpi must be 0 to {count - 1}: the scene has {count} input views")
+        raise APIError(422, ErrorCode.invalid_mpi, f"mpi must be 0 to {count - 1}: the scene has {count} input views")
     index = nearest_mpi(manifest) if mpi is None else mpi
     key = f"{scene_id}/exports/mpi_{index:02d}.glb"
     if not svc.storage.exists(key):  # built once per MPI, then served from storage
@@ -649,7 +651,7 @@ def get_video(
     state = json.loads(svc.storage.read_bytes(state_key)) if svc.storage.exists(state_key) else None
     if state is not None and "error" in state:
         svc.storage.path(state_key).unlink(missing_ok=True)  # the next request tries again
-        raise APIError(500, "video_failed", f"rendering the {path} video failed: {state['error']}")
+        raise APIError(500, ErrorCode.video_failed, f"rendering the {path} video failed: {state['error']}")
     if state is None or time.time() - state["updated_at"] > VIDEO_RESEND_AFTER_S:
         state = {"progress": 0.0, "updated_at": time.time()}
         svc.storage.write_bytes(state_key, json.dumps(state).encode())
@@ -693,7 +695,9 @@ def get_webhook_secret(svc: Svc, owner: Owner) -> WebhookSecret:
     from service.webhooks import ID_HEADER, SIGNATURE_HEADER, TIMESTAMP_HEADER, owner_secret
 
     if not svc.settings.webhook_secret:
-        raise APIError(404, "webhooks_not_configured", "this server sends no webhooks (CMC_WEBHOOK_SECRET is not set)")
+        raise APIError(
+            404, ErrorCode.webhooks_not_configured, "this server sends no webhooks (CMC_WEBHOOK_SECRET is not set)"
+        )
     return WebhookSecret(
         secret=owner_secret(svc.settings.webhook_secret, owner),
         signature_header=SIGNATURE_HEADER,
@@ -743,7 +747,7 @@ def readyz(svc: Svc) -> Response:
             checks[name] = f"{type(e).__name__}: {e}"[:200]
             failed.append(name)
     if failed:
-        raise APIError(503, "unavailable", f"not ready: {', '.join(failed)}", checks)
+        raise APIError(503, ErrorCode.unavailable, f"not ready: {', '.join(failed)}", checks)
     return JSONResponse(Health(status="ready", checks=checks).model_dump())
 
 

@@ -16,7 +16,7 @@ import re
 import secrets
 from pathlib import Path
 
-from service.errors import APIError
+from service.errors import APIError, ErrorCode
 
 OPEN_OWNER = "local"
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
@@ -62,8 +62,8 @@ class KeyRing:
         scheme, _, token = (authorization or "").partition(" ")
         if scheme.lower() != "bearer" or not token.strip():
             hint = "send an API key: Authorization: Bearer <key>"
-            raise APIError(401, "unauthorized", hint, headers={"WWW-Authenticate": "Bearer"})
+            raise APIError(401, ErrorCode.unauthorized, hint, headers={"WWW-Authenticate": "Bearer"})
         digest = key_digest(token.strip())
         if not any(hmac.compare_digest(digest, d) for d in self.digests):
-            raise APIError(401, "unauthorized", "unknown API key", headers={"WWW-Authenticate": "Bearer"})
+            raise APIError(401, ErrorCode.unauthorized, "unknown API key", headers={"WWW-Authenticate": "Bearer"})
         return digest[:16]

@@ -17,7 +17,7 @@ from urllib.parse import urlsplit
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.auth import KeyRing
-from service.errors import APIError, error_response
+from service.errors import APIError, ErrorCode, error_response
 
 
 def _header(scope: Scope, name: bytes) -> str | None:
@@ -73,7 +73,7 @@ class BodyGuard:
                 return bytes(body)
 
     def _too_large(self) -> APIError:
-        return APIError(413, "payload_too_large", f"the request body is over {self.limit} bytes")
+        return APIError(413, ErrorCode.payload_too_large, f"the request body is over {self.limit} bytes")
 
 
 def _replay(body: bytes, receive: Receive) -> Receive:
@@ -113,11 +113,11 @@ class LocalOnly:
             if _hostname(host) not in self.hosts:
                 message = f"without API keys this server answers only for localhost, not {host[:100]!r} "
                 message += "(CMC_ALLOWED_HOSTS adds host names)"
-                await _refuse(APIError(421, "host_not_allowed", message), scope, receive, send)
+                await _refuse(APIError(421, ErrorCode.host_not_allowed, message), scope, receive, send)
                 return
             if scope["method"] in STATE_CHANGING and self._cross_site(scope):
                 message = "without API keys this server refuses changes sent by another site's page"
-                await _refuse(APIError(403, "cross_site_request", message), scope, receive, send)
+                await _refuse(APIError(403, ErrorCode.cross_site_request, message), scope, receive, send)
                 return
         await self.app(scope, receive, send)
 

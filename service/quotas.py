@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.errors import APIError
+from service.errors import APIError, ErrorCode
 from service.limits import Claim, Limiter, LimiterUnavailable, Outcome
 from service.settings import Settings
 
@@ -42,14 +42,14 @@ log = logging.getLogger("cmc.api")
 @dataclass(frozen=True)
 class Limit:
     name: str  # the setting is max_<name>; the metric label and details["limit"]
-    code: str  # the error code of its 429
+    code: ErrorCode  # the error code of its 429
     window_s: float | None  # None: a concurrency limit
     what: str  # for the error message
 
 
-RENDERS = Limit("renders_per_second", "render_rate_limited", 1.0, "render and depth requests per second")
-JOBS_PER_DAY = Limit("jobs_per_day", "daily_job_quota_exceeded", 86400.0, "new scenes in any 24 hours")
-CONCURRENT_JOBS = Limit("concurrent_jobs", "too_many_concurrent_jobs", None, "unfinished scenes")
+RENDERS = Limit("renders_per_second", ErrorCode.render_rate_limited, 1.0, "render and depth requests per second")
+JOBS_PER_DAY = Limit("jobs_per_day", ErrorCode.daily_job_quota_exceeded, 86400.0, "new scenes in any 24 hours")
+CONCURRENT_JOBS = Limit("concurrent_jobs", ErrorCode.too_many_concurrent_jobs, None, "unfinished scenes")
 LIMITS = (CONCURRENT_JOBS, JOBS_PER_DAY, RENDERS)
 
 UPLOAD_HOLD_S = 3600.0  # a place held while an upload streams (given back when it fails; outlives only a crash)

@@ -32,7 +32,7 @@ from typing import Any, TypeVar
 import numpy as np
 from PIL import Image
 
-from service.errors import APIError
+from service.errors import APIError, ErrorCode
 from service.storage import Storage
 
 T = TypeVar("T")
@@ -113,7 +113,7 @@ class RenderQueue:
         with self._lock:
             if self._admitted >= self._capacity:
                 retry = {"Retry-After": str(self.RETRY_AFTER_S)}
-                raise APIError(503, "renderer_busy", "every render slot is taken; retry shortly", headers=retry)
+                raise APIError(503, ErrorCode.renderer_busy, "every render slot is taken; retry shortly", headers=retry)
             self._admitted += 1
         future = self._pool.submit(fn)
         future.add_done_callback(self._release)

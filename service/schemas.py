@@ -6,6 +6,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from service.errors import ErrorCode
 from service.store import Status
 
 
@@ -21,7 +22,7 @@ class SceneOptions(BaseModel):
 
 
 class ErrorDetail(BaseModel):
-    code: str = Field(description="stable, machine-readable")
+    code: ErrorCode = Field(description="stable, machine-readable")
     message: str = Field(description="for people")
     details: Any = None
 
@@ -31,7 +32,7 @@ class ErrorBody(BaseModel):
 
 
 class JobError(BaseModel):
-    code: str = Field(
+    code: ErrorCode = Field(
         description="pose_estimation_failed, invalid_images, invalid_cameras, training_failed, "
         "time_limit_exceeded, worker_lost or internal_error"
     )

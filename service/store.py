@@ -61,6 +61,8 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
+from service.errors import ErrorCode
+
 Status = Literal["queued", "estimating_poses", "training", "baking", "ready", "failed", "cancelled"]
 STATUSES: tuple[Status, ...] = ("queued", "estimating_poses", "training", "baking", "ready", "failed", "cancelled")
 TERMINAL: tuple[Status, ...] = ("ready", "failed", "cancelled")
@@ -430,7 +432,7 @@ class SceneStore:
         with self._session() as s:
             s.execute(update(SceneRow).where(SceneRow.id == scene_id, SceneRow.lease_owner == worker).values(**values))
 
-    def fail(self, scene_id: str, code: str, message: str) -> None:
+    def fail(self, scene_id: str, code: ErrorCode, message: str) -> None:
         """Mark a job failed (whoever holds it); no-op when it already ended."""
         now = time.time()
         with self._session() as s:
@@ -501,7 +503,7 @@ class SceneStore:
             if s.execute(stmt).rowcount != 1:
                 return False
         if attempts >= max_attempts:
-            self.fail(scene.id, "worker_lost", f"the job's worker stopped {attempts} times; giving up")
+            self.fail(scene.id, ErrorCode.worker_lost, f"the job's worker stopped {attempts} times; giving up")
             return False
         return True
 

@@ -28,7 +28,7 @@ from pydantic import ValidationError
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
-from service.errors import APIError
+from service.errors import APIError, ErrorCode
 from service.schemas import SceneOptions
 from service.settings import Settings
 from service.storage import Storage
@@ -94,7 +94,7 @@ class _Reader:
         if self._name == "images":
             images = self.upload.images
             if len(images) >= self.s.max_images:
-                raise APIError(422, "too_many_images", f"send at most {self.s.max_images} images")
+                raise APIError(422, ErrorCode.too_many_images, f"send at most {self.s.max_images} images")
             filename = params.get(b"filename", b"").decode("utf-8", "replace")
             filename = Path(filename.replace("\\", "/")).name or f"image{len(images) + 1}"
             part = ImagePart(filename[:200], self.storage.path(f"{self.scene_id}/uploads/{len(images):02d}.upload"))
@@ -111,12 +111,12 @@ class _Reader:
         if self._file is not None:
             if self._count > self.s.max_image_bytes:
                 name = self.upload.images[-1].filename
-                raise APIError(413, "image_too_large", f"{name} is over {self.s.max_image_bytes} bytes")
+                raise APIError(413, ErrorCode.image_too_large, f"{name} is over {self.s.max_image_bytes} bytes")
             self._file.write(chunk)
         elif self._small is not None:
             if self._count > self.s.max_cameras_bytes:
                 limit = self.s.max_cameras_bytes
-                raise APIError(413, "payload_too_large", f"part {self._name!r} is over {limit} bytes")
+                raise APIError(413, ErrorCode.payload_too_large, f"part {self._name!r} is over {limit} bytes")
             self._small += chunk
 
     def on_part_end(self) -> None:
@@ -137,11 +137,11 @@ async def receive_upload(request: Request, settings: Settings, storage: Storage,
     """Stream the multipart body into storage, enforcing the byte and count limits."""
     ctype, params = parse_options_header(request.headers.get("content-type", ""))
     if ctype != b"multipart/form-data" or b"boundary" not in params:
-        raise APIError(415, "unsupported_media_type", "send the photos as multipart/form-data")
+        raise APIError(415, ErrorCode.unsupported_media_type, "send the photos as multipart/form-data")
     limit = settings.max_request_bytes
     length = request.headers.get("content-length")
     if length is not None and length.isdigit() and int(length) > limit:
-        raise APIError(413, "payload_too_large", f"the request is over {limit} bytes")
+        raise APIError(413, ErrorCode.payload_too_large, f"the request is over {limit} bytes")
     reader = _Reader(settings, storage, scene_id)
     parser = MultipartParser(params[b"boundary"], reader.callbacks())
     total = 0
@@ -149,15 +149,15 @@ async def receive_upload(request: Request, settings: Settings, storage: Storage,
         async for chunk in request.stream():
             total += len(chunk)
             if total > limit:
-                raise APIError(413, "payload_too_large", f"the request is over {limit} bytes")
+                raise APIError(413, ErrorCode.payload_too_large, f"the request is over {limit} bytes")
             parser.write(chunk)
         parser.finalize()
     except ClientDisconnect:
-        raise APIError(400, "bad_request", "the upload was interrupted") from None
+        raise APIError(400, ErrorCode.bad_request, "the upload was interrupted") from None
     except APIError:
         raise
     except Exception as e:  # malformed multipart
-        raise APIError(400, "bad_request", f"malformed multipart body: {e}") from None
+        raise APIError(400, ErrorCode.bad_request, f"malformed multipart body: {e}") from None
     finally:
         reader.close()
     reader.upload.digest = reader.sha.hexdigest()
@@ -179,7 +179,9 @@ def check_images(upload: Upload, settings: Settings) -> list[str]:
 
     n = len(upload.images)
     if n < settings.min_images:
-        raise APIError(422, "too_few_images", f"send at least {settings.min_images} images as 'images' parts, got {n}")
+        raise APIError(
+            422, ErrorCode.too_few_images, f"send at least {settings.min_images} images as 'images' parts, got {n}"
+        )
     names, sizes = [], []
     for k, part in enumerate(upload.images):
         label = part.filename
@@ -189,13 +191,13 @@ def check_images(upload: Upload, settings: Settings) -> list[str]:
             info = read_photo_info(part.path, settings.max_image_pixels)
             load_resized(info, [resized_size(info.width, info.height, 64)], settings.max_image_pixels)
         except UnsupportedImageError:
-            raise APIError(415, "unsupported_image", f"{label} is not a {accepted_formats()} image") from None
+            raise APIError(415, ErrorCode.unsupported_image, f"{label} is not a {accepted_formats()} image") from None
         except ImageTooLargeError:
             raise APIError(
-                413, "image_too_large", f"{label} has more than {settings.max_image_pixels} pixels"
+                413, ErrorCode.image_too_large, f"{label} has more than {settings.max_image_pixels} pixels"
             ) from None
         except SceneError as e:
-            raise APIError(422, "invalid_image", str(e).replace(part.path.name, label)) from None
+            raise APIError(422, ErrorCode.invalid_images, str(e).replace(part.path.name, label)) from None
         final = part.path.with_name(f"{k:02d}{_EXTENSIONS.get(info.format, '.img')}")
         part.path.replace(final)
         part.path = final
@@ -205,7 +207,7 @@ def check_images(upload: Upload, settings: Settings) -> list[str]:
         listing = ", ".join(f"{p.filename} {w}x{h}" for p, (w, h) in zip(upload.images, sizes, strict=True))
         raise APIError(
             422,
-            "invalid_image",
+            ErrorCode.invalid_images,
             f"the photos must have one size and orientation, got {listing}",
         )
     return names
@@ -218,9 +220,9 @@ def parse_options(upload: Upload, settings: Settings) -> SceneOptions:
         opts = SceneOptions.model_validate_json(upload.options)
     except ValidationError as e:
         details = [{"field": ".".join(str(p) for p in err["loc"]), "problem": err["msg"]} for err in e.errors()]
-        raise APIError(422, "invalid_options", "the 'options' part is not valid", details) from None
+        raise APIError(422, ErrorCode.invalid_options, "the 'options' part is not valid", details) from None
     if opts.steps is not None and opts.steps > settings.max_steps:
-        raise APIError(422, "invalid_options", f"steps must be at most {settings.max_steps}")
+        raise APIError(422, ErrorCode.invalid_options, f"steps must be at most {settings.max_steps}")
     return opts
 
 
@@ -231,14 +233,16 @@ def parse_callback_url(upload: Upload, settings: Settings) -> str | None:
     from service.webhooks import CallbackRefused, resolve_callback
 
     if not settings.webhook_secret:
-        raise APIError(422, "webhooks_not_configured", "this server sends no webhooks (CMC_WEBHOOK_SECRET is not set)")
+        raise APIError(
+            422, ErrorCode.webhooks_not_configured, "this server sends no webhooks (CMC_WEBHOOK_SECRET is not set)"
+        )
     try:
         url = upload.callback_url.decode("utf-8").strip()
         resolve_callback(url, settings.webhook_allow_private)
     except UnicodeDecodeError:
-        raise APIError(422, "invalid_callback_url", "callback_url is not UTF-8 text") from None
+        raise APIError(422, ErrorCode.invalid_callback_url, "callback_url is not UTF-8 text") from None
     except CallbackRefused as e:
-        raise APIError(422, "invalid_callback_url", str(e)) from None
+        raise APIError(422, ErrorCode.invalid_callback_url, str(e)) from None
     return url
 
 
@@ -255,11 +259,11 @@ def parse_cameras(upload: Upload, stored_names: list[str]) -> dict | None:
         aliases = [(p.filename, name) for p, name in zip(upload.images, stored_names, strict=True)]
         order = match_frames(cf.file_paths, aliases)
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise APIError(422, "invalid_cameras", f"the 'cameras' part is not valid JSON: {e}") from None
+        raise APIError(422, ErrorCode.invalid_cameras, f"the 'cameras' part is not valid JSON: {e}") from None
     except RecursionError:  # json refuses documents nested deeper than Python's recursion limit
-        raise APIError(422, "invalid_cameras", "the 'cameras' part is nested too deeply") from None
+        raise APIError(422, ErrorCode.invalid_cameras, "the 'cameras' part is nested too deeply") from None
     except CameraError as e:
-        raise APIError(422, "invalid_cameras", str(e)) from None
+        raise APIError(422, ErrorCode.invalid_cameras, str(e)) from None
     for k, f in enumerate(order):
         data["frames"][f]["file_path"] = stored_names[k]
     return data

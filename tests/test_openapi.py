@@ -24,3 +24,24 @@ def test_committed_spec_matches_the_app() -> None:
         assert too_many["content"]["application/json"]["schema"] == {"$ref": "#/components/schemas/ErrorBody"}
         assert set(too_many["headers"]) == fields, path
     assert "429" not in paths["/v1/scenes/{scene_id}"]["get"]["responses"]  # status polls are not limited
+
+
+def test_error_codes_are_one_enum_listed_in_the_spec() -> None:
+    """Every code a client sees is an ErrorCode, spelled once, and the spec lists them all, for API
+    errors and failed jobs alike; the worker maps exceptions to codes through one table."""
+    from cmc.errors import CameraError, PoseEstimationError, SceneError
+    from service.errors import ErrorCode
+    from worker.pipeline import failure_code
+
+    schemas = current_spec()["components"]["schemas"]
+    listed = set(schemas["ErrorCode"]["enum"])
+    assert listed == {c.value for c in ErrorCode}
+    for model in ("ErrorDetail", "JobError"):
+        assert schemas[model]["properties"]["code"]["$ref"] == "#/components/schemas/ErrorCode"
+    assert {"invalid_images", "invalid_cameras"} <= listed  # one spelling: not invalid_image / invalid_camera
+    assert not {"invalid_image", "invalid_camera"} & listed
+    assert failure_code(PoseEstimationError("x")) == ErrorCode.pose_estimation_failed
+    assert failure_code(CameraError("x")) == ErrorCode.invalid_cameras
+    assert failure_code(SceneError("x")) == ErrorCode.invalid_images
+    assert failure_code(FloatingPointError("x")) == ErrorCode.training_failed
+    assert failure_code(KeyError("x")) is None  # a bug: internal_error, logged

@@ -263,10 +263,10 @@ def test_render_content_negotiation_and_bad_cameras(ready) -> None:
     assert bad.status_code == 406 and bad.json()["error"]["code"] == "not_acceptable"
     skew = {**body, "transform_matrix": (np.array(body["transform_matrix"]) * [[1, 2, 1, 1]] * 1).tolist()}
     r = client.post(f"/v1/scenes/{sid}/render", json=skew)
-    assert r.status_code == 422 and r.json()["error"]["code"] == "invalid_camera"
+    assert r.status_code == 422 and r.json()["error"]["code"] == "invalid_cameras"
     for route in ("render", "depth"):  # intrinsics that underflow to a singular matrix
         tiny = client.post(f"/v1/scenes/{sid}/{route}", json={**body, "fl_x": 1e-300})
-        assert tiny.status_code == 422 and tiny.json()["error"]["code"] == "invalid_camera", tiny.text
+        assert tiny.status_code == 422 and tiny.json()["error"]["code"] == "invalid_cameras", tiny.text
     huge = client.post(f"/v1/scenes/{sid}/render", json={**body, "w": 8000, "h": 8000})
     assert huge.status_code == 422 and huge.json()["error"]["code"] == "render_too_large"
     missing = client.post(f"/v1/scenes/{sid}/render", json={"fl_x": 10})
@@ -435,11 +435,11 @@ def _replace(parts: list, index: int, name: str, data: bytes) -> list:
         ("too_few", 422, "too_few_images"),
         ("too_many", 422, "too_many_images"),
         ("not_an_image", 415, "unsupported_image"),
-        ("empty", 422, "invalid_image"),
-        ("truncated", 422, "invalid_image"),
+        ("empty", 422, "invalid_images"),
+        ("truncated", 422, "invalid_images"),
         ("bytes", 413, "image_too_large"),
         ("pixels", 413, "image_too_large"),
-        ("sizes", 422, "invalid_image"),
+        ("sizes", 422, "invalid_images"),
         ("options", 422, "invalid_options"),
         ("steps", 422, "invalid_options"),
         ("cameras_json", 422, "invalid_cameras"),

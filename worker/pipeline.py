@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from service.errors import ErrorCode
 from service.jobs import JobQueue
 from service.settings import Settings
 from service.storage import Storage, video_keys
@@ -67,14 +68,6 @@ class JobContext:
     settings: Settings
     worker_id: str = field(default_factory=new_worker_id)
     shutdown: threading.Event = field(default_factory=threading.Event)  # set: stop jobs, keep them queued
-
-
-class JobFailure(Exception):
-    """The job cannot succeed; ``code`` is the stable error code clients see."""
-
-    def __init__(self, code: str, message: str):
-        super().__init__(message)
-        self.code, self.message = code, message
 
 
 class JobStopped(Exception):
@@ -164,16 +157,17 @@ def run_job(ctx: JobContext, scene_id: str, phase: Phase) -> str:
                 _estimate_poses(ctx, rec, hb)
             else:
                 _train_and_bake(ctx, rec, hb)
-        except JobFailure as e:
-            ctx.store.fail(scene_id, e.code, _user_names(rec, e.message))
-            outcome = "failed"
         except Exception as e:
-            if hb.reason is None:
+            code = failure_code(e)
+            if code is not None:
+                ctx.store.fail(scene_id, code, _user_names(rec, str(e)))
+                outcome = "failed"
+            elif hb.reason is None:
                 log.error("job %s phase %s crashed:\n%s", scene_id, phase, traceback.format_exc())
-                ctx.store.fail(scene_id, "internal_error", f"{type(e).__name__}: {e}")
+                ctx.store.fail(scene_id, ErrorCode.internal_error, f"{type(e).__name__}: {e}")
                 outcome = "failed"
             elif hb.reason == "time_limit":
-                ctx.store.fail(scene_id, "time_limit_exceeded", f"{phase} took longer than {limit:.0f} s")
+                ctx.store.fail(scene_id, ErrorCode.time_limit_exceeded, f"{phase} took longer than {limit:.0f} s")
                 outcome = "failed"
             elif hb.reason == "shutdown":  # checkpointed: the next worker (or start) resumes it
                 ctx.store.release(scene_id, ctx.worker_id, resend=True, detail=WAITING)
@@ -188,6 +182,20 @@ def run_job(ctx: JobContext, scene_id: str, phase: Phase) -> str:
     kick_webhooks(ctx, scene_id)  # a ready or failed scene recorded its event with the change
     log.info("job %s phase %s: %s", scene_id, phase, outcome)
     return outcome
+
+
+def failure_code(e: BaseException) -> ErrorCode | None:
+    """The code a job fails with for exception ``e`` (the first matching row of the table below),
+    or None: a stop (cancel, lease lost, time limit, shutdown) or a bug (internal_error)."""
+    from cmc.errors import CameraError, PoseEstimationError, SceneError
+
+    table: tuple[tuple[type[BaseException], ErrorCode], ...] = (
+        (PoseEstimationError, ErrorCode.pose_estimation_failed),
+        (CameraError, ErrorCode.invalid_cameras),
+        (SceneError, ErrorCode.invalid_images),  # photos, and a scene folder they made
+        (FloatingPointError, ErrorCode.training_failed),  # training diverged
+    )
+    return next((code for kind, code in table if isinstance(e, kind)), None)
 
 
 def kick_webhooks(ctx: JobContext, scene_id: str) -> None:
@@ -233,10 +241,8 @@ def _training_prior_s(options: dict[str, Any]) -> float:
 
 
 def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
-    from cmc.cameras import CameraError
-    from cmc.datasets import SceneError
     from cmc.eta import REFERENCE_POSES_S
-    from cmc.poses import PoseEstimationCancelled, PoseEstimationError, PoseOptions, estimate_poses, poses_from_client
+    from cmc.poses import PoseEstimationCancelled, PoseOptions, estimate_poses, poses_from_client
 
     later_s = _training_prior_s(rec.options)
     t0 = time.perf_counter()
@@ -268,12 +274,6 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
             result = estimate_poses(uploads, scene_dir, options, **hooks)
     except PoseEstimationCancelled:
         raise JobStopped(hb.reason or "cancelled") from None
-    except PoseEstimationError as e:
-        raise JobFailure("pose_estimation_failed", str(e)) from None
-    except CameraError as e:
-        raise JobFailure("invalid_cameras", str(e)) from None
-    except SceneError as e:
-        raise JobFailure("invalid_images", str(e)) from None
     hb.check()
     stats = {**rec.stats, "poses": {"timings_s": result.timings, **result.stats}}
     eta = round(_training_prior_s(rec.options), 1)
@@ -310,15 +310,12 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
 
     from cmc.baking import bake
     from cmc.config import preset_config
-    from cmc.datasets import SceneError, load_scene_folder
+    from cmc.datasets import load_scene_folder
     from cmc.eta import REFERENCE_STEP_S, bake_steps
     from cmc.training import Progress, Trainer, TrainingCancelled
 
     s, opts = ctx.settings, rec.options
-    try:
-        scene = load_scene_folder(ctx.storage.path(f"{rec.id}/scene"))
-    except SceneError as e:
-        raise JobFailure("invalid_images", str(e)) from None
+    scene = load_scene_folder(ctx.storage.path(f"{rec.id}/scene"))
     overrides: dict[str, Any] = {"seed": int(opts["seed"])}
     if opts.get("steps"):
         overrides["steps"] = int(opts["steps"])
@@ -369,8 +366,6 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
         )
     except TrainingCancelled:
         raise JobStopped(hb.reason or "cancelled") from None
-    except FloatingPointError as e:
-        raise JobFailure("training_failed", str(e)) from None
     train_s = time.perf_counter() - t0
     hb.set(status="baking", progress=0.0, eta_seconds=round(bake_cost * step_s, 1), detail="baking the MPIs")
     hb.flush()
