@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -72,6 +73,15 @@ def lr_at(cfg: TrainConfig, step: int) -> float:
     """Exponential decay from ``cfg.lr`` at step 0 to ``cfg.lr_final`` at the last step."""
     t = step / max(cfg.steps - 1, 1)
     return cfg.lr * (cfg.lr_final / cfg.lr) ** t
+
+
+# Configuration fields that change when checkpoints are written, not what is trained.
+_NOT_IN_RESUME_KEY = ("checkpoint_every",)
+
+
+def _resume_key(config: dict[str, Any]) -> dict[str, Any]:
+    """The part of a ``TrainConfig.to_dict()`` a checkpoint must match to be resumed."""
+    return {k: v for k, v in config.items() if k not in _NOT_IN_RESUME_KEY}
 
 
 class Trainer:
@@ -172,6 +182,8 @@ class Trainer:
         return {k: float(v.detach()) for k, v in losses.items()}
 
     # -- checkpoints --------------------------------------------------------------------------
+    # A checkpoint resumes under any configuration that trains the same run: how often it is
+    # written (checkpoint_every) does not count.
 
     def state_dict(self) -> dict:
         return {
@@ -194,7 +206,7 @@ class Trainer:
         ckpt = torch.load(path, map_location=self.device, weights_only=False)
         if ckpt.get("version") != CHECKPOINT_VERSION:
             raise CheckpointError(f"checkpoint {path} has version {ckpt.get('version')}, expected {CHECKPOINT_VERSION}")
-        if ckpt["config"] != self.cfg.to_dict():
+        if _resume_key(ckpt["config"]) != _resume_key(self.cfg.to_dict()):
             raise CheckpointError(f"checkpoint {path} was written with a different training configuration")
         self.model.load_state_dict(ckpt["model"])
         self.optimizer.load_state_dict(ckpt["optimizer"])

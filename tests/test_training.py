@@ -155,3 +155,17 @@ def test_config_round_trip():
     for name in ("fast", "paper"):
         cfg = preset_config(name)
         assert TrainConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_checkpoint_cadence_is_not_part_of_the_resume_check(scene, tmp_path):
+    """Changing only checkpoint_every resumes the checkpoint instead of starting over from step 0."""
+    ckpt = tmp_path / "c.pt"
+    cfg = tiny(steps=6)
+    first = Trainer(scene, cfg)
+    with pytest.raises(TrainingCancelled):
+        first.fit(should_stop=lambda: first.step >= 3, checkpoint_path=ckpt)
+    second = Trainer(scene, replace(cfg, checkpoint_every=cfg.checkpoint_every + 7))
+    second.load_checkpoint(ckpt)
+    assert second.step == 3
+    with pytest.raises(ValueError, match="different training configuration"):
+        Trainer(scene, replace(cfg, lr=cfg.lr * 2)).load_checkpoint(ckpt)
