@@ -42,7 +42,8 @@ import torch
 from PIL import Image
 
 from cmc.fields import MPIField, TextureField
-from cmc.geometry import mean_baseline
+from cmc.geometry import mean_baseline, pixel_rays, texel_grid
+from cmc.images import to_uint8
 from cmc.model import CMCModel
 from cmc.rendering import ImageOutput, MPIFrame, blend_selection, render_image
 
@@ -66,12 +67,8 @@ def bake_textures(
     """
     h, w = tile or frame.extent
     dev = frame.K.device
-    ys = (torch.arange(h, device=dev, dtype=torch.float32) + 0.5) / h * 2 - 1
-    xs = (torch.arange(w, device=dev, dtype=torch.float32) + 0.5) / w * 2 - 1
-    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
-    g = torch.stack([gx, gy], -1).reshape(-1, 2)
-    uv = frame.pixels_from_grid(g)
-    dirs = torch.cat([uv, torch.ones_like(uv[:, :1])], -1) @ torch.linalg.inv(frame.K).T
+    g = texel_grid(h, w, dev).reshape(-1, 2)
+    dirs = pixel_rays(frame.K, frame.pixels_from_grid(g))
     dirs = dirs / dirs.norm(dim=-1, keepdim=True)
     D = frame.depths.shape[0]
     parts = []
@@ -123,7 +120,7 @@ def bake(model: CMCModel, out_dir: str | Path, scale: float = 1.0, merge: int = 
         D = rgba.shape[0]
         rows, cols = _atlas_grid(D)
         atlas = np.zeros((rows * h, cols * w, 4), dtype=np.uint8)
-        tiles = (rgba.clamp(0, 1) * 255 + 0.5).to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+        tiles = to_uint8(rgba).permute(0, 2, 3, 1).cpu().numpy()
         for k in range(D):
             r, c = divmod(k, cols)
             atlas[r * h : (r + 1) * h, c * w : (c + 1) * w] = tiles[k]

@@ -23,6 +23,7 @@ from cmc.cameras import (
     save_camera_file,
 )
 from cmc.errors import SceneError
+from cmc.images import to_uint8
 
 CAMERAS_FILE = "cameras.json"
 
@@ -98,7 +99,7 @@ def load_image(path: Path) -> np.ndarray:
 
 def save_image(path: Path, image: np.ndarray) -> None:
     """Write an [H, W, 3] or [H, W] float image in [0, 1] as 8-bit PNG/JPEG by extension."""
-    Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)).save(path)
+    Image.fromarray(to_uint8(image)).save(path)
 
 
 def load_scene_folder(folder: str | Path) -> Scene:

@@ -25,6 +25,7 @@ from cmc.datasets import (
     synthetic_scene,
 )
 from cmc.diagnostics import depth_preview
+from cmc.images import to_uint8
 from cmc.metrics import psnr
 from cmc.training import Progress, Trainer
 
@@ -57,7 +58,7 @@ def run_demo(
     frames = []
     for pose in orbit_poses(scene.cameras, 24):
         f = baked.render(novel.K[0], pose).rgb.numpy()
-        frames.append(Image.fromarray((np.clip(f, 0, 1) * 255 + 0.5).astype(np.uint8)))
+        frames.append(Image.fromarray(to_uint8(f)))
     frames[0].save(out / "orbit.gif", save_all=True, append_images=frames[1:], duration=80, loop=0)
     summary = {
         "train_seconds": result.seconds,

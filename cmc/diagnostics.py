@@ -11,6 +11,8 @@ from collections.abc import Sequence
 import numpy as np
 from PIL import Image, ImageDraw
 
+from cmc.images import to_uint8
+
 
 def depth_preview(depth: np.ndarray, near: float, far: float) -> np.ndarray:
     """[H, W, 3] colour map of inverse depth (near = bright yellow, far = dark blue)."""
@@ -45,7 +47,7 @@ def contact_sheet(tiles: Sequence[Sequence[tuple[str, np.ndarray | None]]]) -> n
         for c, (label, tile) in enumerate(row):
             if tile is None:
                 continue
-            sheet.paste(Image.fromarray((np.clip(tile, 0, 1) * 255 + 0.5).astype(np.uint8)), (c * w, r * h))
+            sheet.paste(Image.fromarray(to_uint8(tile)), (c * w, r * h))
             draw.rectangle((c * w, r * h, c * w + 7 * len(label) + 4, r * h + 12), fill=(0, 0, 0))
             draw.text((c * w + 2, r * h), label, fill=(255, 255, 255))
     return np.asarray(sheet, dtype=np.float32) / 255.0

@@ -67,6 +67,21 @@ def apply_homography(H: torch.Tensor, uv: torch.Tensor, eps: float = 1e-6) -> tu
     return q[..., :2] / w[..., None], valid
 
 
+def texel_grid(height: int, width: int, device: torch.device | str = "cpu") -> torch.Tensor:
+    """[height, width, 2] plane grid coordinates (x, y) in [-1, 1] of the centres of a texel grid
+    (``grid_sample(align_corners=False)``'s convention: texel c of w sits at (c + 0.5) / w * 2 - 1)."""
+    ys = (torch.arange(height, device=device, dtype=torch.float32) + 0.5) / height * 2 - 1
+    xs = (torch.arange(width, device=device, dtype=torch.float32) + 0.5) / width * 2 - 1
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    return torch.stack([gx, gy], -1)
+
+
+def pixel_rays(K: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """[..., 3] camera-space ray directions with z = 1 (not unit length) through continuous pixel
+    coordinates ``uv`` [..., 2] of intrinsics ``K`` [3, 3]: ``K^-1 (u, v, 1)``."""
+    return torch.cat([uv, torch.ones_like(uv[..., :1])], -1) @ torch.linalg.inv(K).T
+
+
 def pixel_centers(width: int, height: int, device: torch.device | str = "cpu") -> torch.Tensor:
     """[H*W, 2] continuous (u, v) coordinates of every pixel centre, row-major."""
     v, u = torch.meshgrid(

@@ -22,9 +22,20 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 from PIL import ExifTags, Image, UnidentifiedImageError
 
-from cmc.datasets import SceneError
+from cmc.errors import SceneError
+
+
+def to_uint8(image):
+    """Colours in [0, 1] (any shape; NumPy array or torch tensor) -> uint8, clipped and rounded
+    to the nearest level; the one float-to-8-bit conversion of the project."""
+    if isinstance(image, np.ndarray):
+        return (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
+    import torch
+
+    return (image.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
 
 
 class UnsupportedImageError(SceneError):

@@ -10,6 +10,7 @@ from torch import nn
 from cmc.config import ModelConfig
 from cmc.datasets import Scene
 from cmc.fields import MLPField, MPIField, PyramidPlaneField
+from cmc.geometry import texel_grid
 from cmc.planesweep import alpha_from_weights, plane_sweep_weights
 from cmc.rendering import ImageOutput, MPIFrame, render_image
 
@@ -19,10 +20,7 @@ def padded_reference(image: np.ndarray, frame: MPIFrame) -> torch.Tensor:
     margin (the initial colour of a pyramid field)."""
     img = torch.as_tensor(image, dtype=torch.float32).permute(2, 0, 1)[None]
     h, w = frame.extent
-    ys = (torch.arange(h, dtype=torch.float32) + 0.5) / h * 2 - 1
-    xs = (torch.arange(w, dtype=torch.float32) + 0.5) / w * 2 - 1
-    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
-    grid = torch.stack([gx, gy], -1)[None] * frame.margin  # plane grid -> image grid coordinates
+    grid = texel_grid(h, w)[None] * frame.margin  # plane grid -> image grid coordinates
     return F.grid_sample(img, grid, align_corners=False, padding_mode="border")[0]
 
 

@@ -12,16 +12,12 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from cmc.geometry import homographies_ref_from_tgt
+from cmc.geometry import homographies_ref_from_tgt, texel_grid
 
 
 def texel_pixels(frame, height: int, width: int) -> torch.Tensor:
     """[height * width, 2] reference pixel coordinates of a texel grid over the plane extent."""
-    dev = frame.K.device
-    ys = (torch.arange(height, device=dev, dtype=torch.float32) + 0.5) / height * 2 - 1
-    xs = (torch.arange(width, device=dev, dtype=torch.float32) + 0.5) / width * 2 - 1
-    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
-    return frame.pixels_from_grid(torch.stack([gx, gy], -1).reshape(-1, 2))
+    return frame.pixels_from_grid(texel_grid(height, width, frame.K.device).reshape(-1, 2))
 
 
 def sample_image(image: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

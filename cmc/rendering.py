@@ -27,6 +27,7 @@ from cmc.geometry import (
     homographies_ref_from_tgt,
     mean_baseline,
     pixel_centers,
+    pixel_rays,
     plane_depths,
 )
 
@@ -157,7 +158,7 @@ def render_ray_groups(
         # Ray directions in the reference frame, and the target depth of every plane crossing:
         # the point o + lam * d_ref (d_ref has target z = 1) lies on plane z_ref = depth.
         ref_from_tgt = frame.ref_from_world @ world_from_tgt
-        d_tgt = torch.cat([uv, torch.ones_like(uv[:, :1])], -1) @ torch.linalg.inv(K_tgt).T
+        d_tgt = pixel_rays(K_tgt, uv)
         d_ref = d_tgt @ ref_from_tgt[:3, :3].T
         lams.append((frame.depths[None] - ref_from_tgt[2, 3]) / d_ref[:, 2:3])  # [R, D]
         dirss.append(d_ref / d_ref.norm(dim=-1, keepdim=True))
@@ -169,46 +170,6 @@ def render_ray_groups(
         rgb_g = rgb[sl] if color_grad is None or color_grad[g] else rgb[sl].detach()
         outs.append(composite(rgb_g, alpha[sl] * inside, torch.where(inside, lam, torch.zeros_like(lam))))
     return outs
-
-
-def render_rays_reference(
-    field: MPIField, frame: MPIFrame, K_tgt: torch.Tensor, world_from_tgt: torch.Tensor, uv: torch.Tensor
-) -> RayOutput:
-    """Slow, obviously-correct twin of :func:`render_rays` for tests: one plane at a time, by
-    intersecting each world-space ray with the plane and projecting the point into the
-    reference camera (no homography)."""
-    origin = world_from_tgt[:3, 3]
-    d_cam = torch.cat([uv, torch.ones_like(uv[:, :1])], -1) @ torch.linalg.inv(K_tgt).T
-    d_world = d_cam @ world_from_tgt[:3, :3].T  # target z-depth parametrisation
-    ref_from_world = frame.ref_from_world
-    gs, lams, valids = [], [], []
-    for z in frame.depths:
-        o_ref = ref_from_world[:3, :3] @ origin + ref_from_world[:3, 3]
-        d_ref = d_world @ ref_from_world[:3, :3].T
-        lam = (z - o_ref[2]) / d_ref[:, 2]
-        p = o_ref + lam[:, None] * d_ref
-        pix = p @ frame.K.T
-        uv_ref = pix[:, :2] / pix[:, 2:3]
-        g = frame.grid_from_pixels(uv_ref)
-        gs.append(g)
-        lams.append(lam)
-        valids.append((lam > 0) & (g.abs() <= 1).all(-1))
-    g = torch.stack(gs, 1)
-    lam = torch.stack(lams, 1)
-    inside = torch.stack(valids, 1)
-    dirs = d_world @ ref_from_world[:3, :3].T
-    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
-    rgb, alpha = field(g.clamp(-1.5, 1.5), frame.plane_z, dirs)
-    alpha = alpha * inside
-    out_rgb = torch.zeros_like(rgb[:, 0])
-    out_depth = torch.zeros_like(lam[:, 0])
-    trans = torch.ones_like(lam[:, 0])
-    for k in range(lam.shape[1]):
-        a = alpha[:, k]
-        out_rgb = out_rgb + (trans * a)[:, None] * rgb[:, k]
-        out_depth = out_depth + trans * a * torch.where(inside[:, k], lam[:, k], torch.zeros_like(a))
-        trans = trans * (1 - a)
-    return RayOutput(out_rgb, out_depth, 1 - trans)
 
 
 @dataclass
@@ -249,7 +210,7 @@ def render_texture_image(
 ) -> RayOutput:
     """Whole-image render of fixed textures: every plane warped by its homography, then composited.
 
-    The fast path for baked MPIs (slow twin: :func:`render_texture_image_reference`). Textures
+    The fast path for baked MPIs (slow twin: :func:`cmc._reference.render_texture_image_reference`). Textures
     are premultiplied, so sampling outside a plane (zero padding) is simply transparent.
 
     Warp: let ``[R | t]`` = ref_from_tgt, ``d(p) = R K_tgt^-1 p`` the reference-frame direction
@@ -327,45 +288,6 @@ def render_texture_image(
     depth_sum.add_(trans, alpha=depth_steps[D])
     out = out.permute(1, 0, 2, 3).reshape(4, B * Pb)[:, :P]
     return RayOutput(out[:3].T, (depth_sum / dz).reshape(-1)[:P], out[3])
-
-
-def render_texture_image_reference(
-    rgba_premult: torch.Tensor,
-    frame: MPIFrame,
-    K_tgt: torch.Tensor,
-    world_from_tgt: torch.Tensor,
-    width: int,
-    height: int,
-) -> RayOutput:
-    """Slow, obviously-correct twin of :func:`render_texture_image` for tests: one plane at a time,
-    by intersecting each pixel's world-space ray with the plane and projecting the point into the
-    reference camera (no homography), one ``grid_sample`` per plane (zero padding: transparent
-    outside the plane) and front-to-back "over" in a loop. Crossings behind the target camera
-    are transparent.
-
-    Shape: as :func:`render_texture_image`.
-    """
-    uv = pixel_centers(width, height, rgba_premult.device).to(rgba_premult.dtype)
-    d_cam = torch.cat([uv, torch.ones_like(uv[:, :1])], -1) @ torch.linalg.inv(K_tgt).T
-    d_world = d_cam @ world_from_tgt[:3, :3].T  # target z-depth parametrisation
-    ref_from_world = frame.ref_from_world
-    o_ref = ref_from_world[:3, :3] @ world_from_tgt[:3, 3] + ref_from_world[:3, 3]
-    d_ref = d_world @ ref_from_world[:3, :3].T
-    rgb = torch.zeros_like(d_ref)
-    depth = torch.zeros_like(d_ref[:, 0])
-    trans = torch.ones_like(depth)
-    for k, z in enumerate(frame.depths):
-        lam = (z - o_ref[2]) / d_ref[:, 2]  # target depth of the crossing
-        in_front = lam > 0
-        p = o_ref + lam[:, None] * d_ref
-        pix = p @ frame.K.T
-        g = frame.grid_from_pixels(pix[:, :2] / pix[:, 2:3])
-        g = torch.where(in_front[:, None], g, torch.full_like(g, 3.0))
-        s = F.grid_sample(rgba_premult[k : k + 1], g[None, None], align_corners=False)[0, :, 0].T  # [P, 4]
-        rgb = rgb + trans[:, None] * s[:, :3]
-        depth = depth + trans * s[:, 3] * torch.where(in_front, lam, torch.zeros_like(lam))
-        trans = trans * (1 - s[:, 3])
-    return RayOutput(rgb, depth, 1 - trans)
 
 
 def blend_selection(

@@ -19,6 +19,7 @@ import numpy as np
 from cmc.baking import BakedScene
 from cmc.camera_paths import PATH_KINDS, PathKind, camera_path
 from cmc.errors import ConfigError
+from cmc.images import to_uint8
 
 DEFAULT_FRAMES = 120
 DEFAULT_FPS = 30
@@ -94,7 +95,7 @@ def render_path_video(
         writer.send(None)  # start ffmpeg
         for i, pose in enumerate(poses):
             rgb = baked.render(K, pose, w, h).rgb.cpu().numpy()
-            writer.send(np.ascontiguousarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)))
+            writer.send(np.ascontiguousarray(to_uint8(rgb)))
             if on_frame is not None:
                 on_frame(i + 1, len(poses))
         writer.close()

@@ -129,7 +129,9 @@ class RenderQueue:
 
 def encode_image(rgb: np.ndarray, media_type: str) -> bytes:
     """[H, W, 3] float in [0, 1] -> PNG or JPEG bytes."""
-    im = Image.fromarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8))
+    from cmc.images import to_uint8
+
+    im = Image.fromarray(to_uint8(rgb))
     buf = io.BytesIO()
     if media_type == "image/jpeg":
         im.save(buf, "JPEG", quality=90)

@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 import torch
 
+from cmc._reference import render_texture_image_reference
 from cmc.baking import BakedFormatError, BakedScene, bake
 from cmc.config import preset_config
 from cmc.datasets import synthetic_scene
 from cmc.geometry import blend_weights, mean_baseline, sample_virtual_pose
 from cmc.metrics import psnr
-from cmc.rendering import blend, render_texture_image_reference
+from cmc.rendering import blend
 from cmc.training import Trainer
 
 W, H = 64, 48

@@ -10,6 +10,7 @@ import pytest
 import torch
 from helpers import rigid, rotation
 
+from cmc._reference import render_rays_reference, render_texture_image_reference
 from cmc.cameras import intrinsics
 from cmc.fields import MLPField, MLPFieldConfig, PyramidFieldConfig, PyramidPlaneField, TextureField
 from cmc.geometry import apply_homography, homographies_ref_from_tgt, pixel_centers, plane_depths
@@ -20,9 +21,7 @@ from cmc.rendering import (
     render_image,
     render_ray_groups,
     render_rays,
-    render_rays_reference,
     render_texture_image,
-    render_texture_image_reference,
 )
 
 W, H = 20, 16  # reference image size; with margin 1.5 the plane extent is 30 x 24, offset (5, 4)

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from cmc._reference import render_texture_image_reference
 from cmc.baking import BakedScene
 from cmc.cameras import look_at
-from cmc.rendering import MPIFrame, blend, render_texture_image_reference
+from cmc.rendering import MPIFrame, blend
 from cmc.texture_kernel import TILE, MPIGeometry, PackedTextures, occupancy, render
 
 W, H, D = 40, 30, 6
