@@ -9,6 +9,7 @@ import shutil
 import signal
 import sys
 from dataclasses import replace
+from importlib.metadata import entry_points
 from pathlib import Path
 
 import numpy as np
@@ -314,18 +315,16 @@ def build_parser() -> argparse.ArgumentParser:
     ps.add_argument("--work-dir", help="keep COLMAP's database and sparse model here (default: a temporary folder)")
     ps.add_argument("--verbose", action="store_true", help="show COLMAP's log")
     ps.set_defaults(func=cmd_poses)
-    _register_service_commands(sub)
+    _register_plugin_commands(sub)
     return p
 
 
-def _register_service_commands(sub: argparse._SubParsersAction) -> None:
-    """``cmc serve`` and ``cmc new-api-key`` live with the REST service (service/serve.py);
-    imported here only to offer them, so the library itself holds no web code."""
-    try:
-        from service.serve import register_cli as register_service_cli
-    except ImportError:  # the library installed without the service
-        return
-    register_service_cli(sub)
+def _register_plugin_commands(sub: argparse._SubParsersAction) -> None:
+    """Commands other packages add through the ``cmc.commands`` entry point (pyproject.toml):
+    ``cmc serve`` and ``cmc new-api-key`` of the REST service. Each entry is a function taking
+    the subparsers; the library imports none of them itself."""
+    for entry in entry_points(group="cmc.commands"):
+        entry.load()(sub)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -7,9 +7,11 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
+from importlib.metadata import entry_points
+from typing import Any
 
 from fastapi import FastAPI
 
@@ -43,12 +45,26 @@ Cameras use the transforms.json shape with a `convention` field (`opengl`, ARKit
 """
 
 
+def installed_runner() -> Callable[[SceneStore, LocalStorage, Settings], Any]:
+    """The in-process job runner worker/ registers under the ``cmc.job_runners`` entry point
+    (pyproject.toml), found by name so that the API does not import the workers."""
+    found = list(entry_points(group="cmc.job_runners", name="embedded"))
+    if not found:
+        raise RuntimeError("no embedded job runner is installed (pip install -e . registers worker.embedded)")
+    return found[0].load()
+
+
 def create_app(
-    settings: Settings | None = None, queue: JobQueue | None = None, limiter: Limiter | None = None
+    settings: Settings | None = None,
+    queue: JobQueue | None = None,
+    limiter: Limiter | None = None,
+    embedded_runner: Callable[[SceneStore, LocalStorage, Settings], Any] | None = None,
 ) -> FastAPI:
-    """Build the app. Without ``queue``: Celery (``settings.mode == 'celery'``) or the
-    embedded runner, started and stopped with the app's lifespan. Without ``limiter``: the
-    quotas are counted in Redis (the broker) in celery mode, in memory embedded."""
+    """Build the app. Without ``queue``: Celery (``settings.mode == 'celery'``) or the embedded
+    runner, ``embedded_runner(store, storage, settings)`` (``cmc serve`` passes
+    ``worker.embedded.EmbeddedRunner``; default :func:`installed_runner`), a JobQueue started and
+    stopped with the app's lifespan. Without ``limiter``: the quotas are counted in Redis (the
+    broker) in celery mode, in memory embedded."""
     settings = settings or load_settings()
     store = SceneStore(settings.resolved_database_url)
     storage = LocalStorage(settings.resolved_storage_dir)
@@ -58,9 +74,7 @@ def create_app(
         if settings.mode == "celery":
             queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue, settings.webhook_queue)
         else:
-            from worker.embedded import EmbeddedRunner
-
-            runner = EmbeddedRunner(store, storage, settings)
+            runner = (embedded_runner or installed_runner())(store, storage, settings)
             queue = runner
     metrics = Metrics(store, queue)
     if limiter is None:

@@ -26,6 +26,7 @@ def cmd_serve(args: argparse.Namespace) -> None:
     from service.app import create_app
     from service.auth import KeyRing
     from service.settings import load_settings
+    from worker.embedded import EmbeddedRunner
 
     settings = load_settings(data_dir=Path(args.data_dir), mode="embedded")
     keys = KeyRing.load(settings.api_keys, settings.api_keys_file)
@@ -40,7 +41,8 @@ def cmd_serve(args: argparse.Namespace) -> None:
         print("No API keys configured: accepting requests without a key, on this machine only.")
     else:
         print(f"API key required ({len(keys.digests)} configured).")
-    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.log_level)
+    app = create_app(settings, embedded_runner=EmbeddedRunner)  # the one place the API meets worker/
+    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
 
 
 def cmd_new_api_key(args: argparse.Namespace) -> None:

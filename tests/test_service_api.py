@@ -35,10 +35,10 @@ from cmc.cameras import Cameras, convert_pose
 from cmc.datasets import DEFAULT_LAYERS, render_layers
 from cmc.metrics import psnr
 from cmc.video import path_cameras
-from service.api import negotiate
 from service.app import create_app
 from service.auth import key_digest
 from service.limits import MemoryLimiter, RedisLimiter
+from service.negotiation import negotiate
 from service.quotas import RECORD_HOLD_S
 from service.schemas import RenderCamera
 from service.settings import load_settings

@@ -1,0 +1,283 @@
+"""View routes of a ready scene: render and depth from any camera, the baked MPI, glTF export,
+camera paths and their videos, the viewer page."""
+
+from __future__ import annotations
+
+import json
+import time
+from functools import cache
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from fastapi import APIRouter, Header, Query, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
+
+from service.api.deps import (
+    ERRORS_READY,
+    ERRORS_RENDER,
+    RATE_LIMIT_HEADERS,
+    Owner,
+    RenderQuota,
+    SceneId,
+    Svc,
+    ready_scene,
+)
+from service.errors import APIError, ErrorCode, not_found
+from service.negotiation import negotiate
+from service.renders import (
+    Rendered,
+    depth_scale,
+    encode_depth_npy,
+    encode_depth_png16,
+    encode_depth_preview,
+    encode_image,
+)
+from service.schemas import (
+    CameraPath,
+    ErrorBody,
+    PathName,
+    RenderCamera,
+    VideoBuilding,
+)
+from service.settings import Settings
+from service.storage import video_keys
+
+router = APIRouter()
+
+
+def _camera(body: RenderCamera, settings: Settings) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """K [3, 3] and world_from_cam [4, 4] in the OpenCV convention, width, height."""
+    from cmc.cameras import CameraError, camera_file_from_dict
+
+    if body.w * body.h > settings.max_render_pixels:
+        raise APIError(422, ErrorCode.render_too_large, f"w * h must be at most {settings.max_render_pixels} pixels")
+    frame = body.model_dump(exclude_none=True)
+    data = {k: v for k, v in frame.items() if k != "transform_matrix"}
+    data["frames"] = [{"file_path": "render", "transform_matrix": frame["transform_matrix"]}]
+    try:
+        cams = camera_file_from_dict(data).cameras
+    except CameraError as e:
+        raise APIError(422, ErrorCode.invalid_cameras, str(e).replace("frame 0: ", "")) from None
+    return cams.K[0], cams.world_from_cam[0], body.w, body.h
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/camera-path",
+    response_model=CameraPath,
+    responses=ERRORS_READY,
+    summary="Novel cameras along a path through the capture (the videos' paths), each a render body",
+)
+def get_camera_path(
+    scene_id: SceneId,
+    svc: Svc,
+    owner: Owner,
+    path: PathName = "orbit",
+    frames: Annotated[int, Query(ge=1, le=1000, description="cameras along the closed path")] = 30,
+    convention: Literal["opengl", "opencv"] = "opengl",
+) -> CameraPath:
+    from cmc.camera_paths import baked_path_cameras
+    from cmc.cameras import CameraFile, camera_file_to_dict
+
+    ready_scene(svc, scene_id, owner)
+    manifest = json.loads(svc.storage.read_bytes(f"{scene_id}/baked/mpi.json"))
+    cams = baked_path_cameras(manifest, path, frames)
+    data = camera_file_to_dict(CameraFile(cams, [path] * len(cams)), convention)
+    size = {"w": data["w"], "h": data["h"], "convention": convention}
+    bodies = [RenderCamera(**{k: v for k, v in f.items() if k != "file_path"}, **size) for f in data["frames"]]
+    return CameraPath(path=path, frames=bodies)
+
+
+@router.post(
+    "/v1/scenes/{scene_id}/render",
+    responses={
+        **ERRORS_RENDER,
+        406: {"model": ErrorBody, "description": "Accept names neither image/png nor image/jpeg"},
+        200: {
+            "content": {"image/png": {}, "image/jpeg": {}},
+            "description": "the rendered view",
+            "headers": RATE_LIMIT_HEADERS,
+        },
+    },
+    response_class=Response,
+    summary="Render the scene from any camera (PNG or JPEG by Accept)",
+)
+async def render_view(
+    scene_id: SceneId,
+    camera: RenderCamera,
+    svc: Svc,
+    owner: Owner,
+    _: Annotated[None, RenderQuota],
+    accept: Annotated[str | None, Header()] = None,
+) -> Response:
+    media = negotiate(accept, ["image/png", "image/jpeg"])
+    if media is None:
+        raise APIError(406, ErrorCode.not_acceptable, "this endpoint returns image/png or image/jpeg")
+    await run_in_threadpool(ready_scene, svc, scene_id, owner)
+    K, pose, w, h = _camera(camera, svc.settings)
+    body = await svc.render_queue.run(lambda: encode_image(svc.renders.render(scene_id, K, pose, w, h).rgb, media))
+    return Response(body, media_type=media, headers={"Cache-Control": "no-store"})
+
+
+@router.post(
+    "/v1/scenes/{scene_id}/depth",
+    responses={
+        **ERRORS_RENDER,
+        406: {"model": ErrorBody, "description": "Accept names neither image/png nor application/x-npy"},
+        200: {
+            "content": {"image/png": {}, "application/x-npy": {}},
+            "description": "16-bit PNG (depth = value x Depth-Scale header, scene units, 0 = no surface), "
+            "float32 .npy (scene units), or with preview=true an 8-bit colour map",
+            "headers": RATE_LIMIT_HEADERS,
+        },
+    },
+    response_class=Response,
+    summary="Depth map (target-camera z, scene units) for any camera",
+)
+async def render_depth(
+    scene_id: SceneId,
+    camera: RenderCamera,
+    svc: Svc,
+    owner: Owner,
+    _: Annotated[None, RenderQuota],
+    preview: Annotated[bool, Query(description="an 8-bit colour map for people instead of the data")] = False,
+    accept: Annotated[str | None, Header()] = None,
+) -> Response:
+    media = "image/png" if preview else negotiate(accept, ["image/png", "application/x-npy"])
+    if media is None:
+        raise APIError(406, ErrorCode.not_acceptable, "this endpoint returns image/png or application/x-npy")
+    await run_in_threadpool(ready_scene, svc, scene_id, owner)
+    K, pose, w, h = _camera(camera, svc.settings)
+
+    def draw() -> tuple[Rendered, bytes]:
+        out = svc.renders.render(scene_id, K, pose, w, h)
+        if preview:
+            return out, encode_depth_preview(out.depth, out.near, out.far)
+        if media == "image/png":
+            return out, encode_depth_png16(out.depth, out.far)
+        return out, encode_depth_npy(out.depth)
+
+    out, body = await svc.render_queue.run(draw)
+    headers = {"Cache-Control": "no-store", "Depth-Units": "scene"}
+    headers.update({"Depth-Near": f"{out.near:.9g}", "Depth-Far": f"{out.far:.9g}"})
+    if media == "image/png" and not preview:
+        headers["Depth-Scale"] = f"{depth_scale(out.far):.9g}"
+    return Response(body, media_type=media, headers=headers)
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/mpi",
+    responses={**ERRORS_READY, 200: {"description": "mpi.json of the baked cmc-mpi folder"}},
+    summary="The baked MPI's manifest (atlases at /v1/scenes/{id}/mpi/{atlas})",
+)
+def get_mpi(scene_id: SceneId, svc: Svc, owner: Owner) -> Response:
+    ready_scene(svc, scene_id, owner)
+    return FileResponse(svc.storage.path(f"{scene_id}/baked/mpi.json"), media_type="application/json")
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/mpi/{name}",
+    responses={**ERRORS_READY, 200: {"content": {"image/png": {}, "application/json": {}}, "description": "a file"}},
+    summary="A file of the baked MPI: mpi.json or an atlas it names",
+)
+def get_mpi_file(scene_id: SceneId, name: str, svc: Svc, owner: Owner) -> Response:
+    ready_scene(svc, scene_id, owner)
+    manifest_path = svc.storage.path(f"{scene_id}/baked/mpi.json")
+    if name == "mpi.json":
+        return FileResponse(manifest_path, media_type="application/json")
+    atlases = {m["atlas"] for m in json.loads(manifest_path.read_text())["mpis"]}
+    if name not in atlases:  # only names the manifest lists; never a client-built path
+        raise not_found("file")
+    return FileResponse(svc.storage.path(f"{scene_id}/baked/{name}"), media_type="image/png")
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/export.glb",
+    responses={
+        **ERRORS_READY,
+        200: {"content": {"model/gltf-binary": {}}, "description": "glTF 2.0 binary: textured planes and cameras"},
+    },
+    response_class=Response,
+    summary="The scene as glTF (.glb): one MPI's planes as alpha-blended textured quads, and the input cameras",
+)
+async def export_glb(
+    scene_id: SceneId,
+    svc: Svc,
+    owner: Owner,
+    mpi: Annotated[
+        int | None, Query(ge=0, description="which input view's MPI (default: the one nearest the mean camera)")
+    ] = None,
+) -> Response:
+    from cmc.gltf import export_glb as build
+    from cmc.gltf import nearest_mpi
+
+    rec = await run_in_threadpool(ready_scene, svc, scene_id, owner)
+    manifest = json.loads(await run_in_threadpool(svc.storage.read_bytes, f"{scene_id}/baked/mpi.json"))
+    count = len(manifest["mpis"])
+    if mpi is not None and mpi >= count:
+        raise APIError(422, ErrorCode.invalid_mpi, f"mpi must be 0 to {count - 1}: the scene has {count} input views")
+    index = nearest_mpi(manifest) if mpi is None else mpi
+    key = f"{scene_id}/exports/mpi_{index:02d}.glb"
+    if not await run_in_threadpool(svc.storage.exists, key):  # built once per MPI, then served from storage
+
+        def write() -> None:
+            names = rec.upload_names if len(rec.upload_names) == count else None  # the photos' names
+            data, _ = build(svc.storage.path(f"{scene_id}/baked"), index, names)
+            svc.storage.write_bytes(key, data)
+
+        await svc.render_queue.run(write)
+    headers = {"Content-Disposition": f'attachment; filename="{scene_id}.glb"', "Cache-Control": "private"}
+    return FileResponse(svc.storage.path(key), media_type="model/gltf-binary", headers=headers)
+
+
+VIDEO_RESEND_AFTER_S = 600  # a build whose state was not updated for this long died: send it again
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/video",
+    responses={
+        **ERRORS_READY,
+        200: {"content": {"video/mp4": {}}, "description": "H.264 MP4 of the camera path"},
+        202: {"model": VideoBuilding, "description": "being rendered: ask again after Retry-After seconds"},
+        500: {"model": ErrorBody, "description": "rendering failed (code video_failed); asking again retries"},
+    },
+    response_class=Response,
+    summary="A camera-path video (spiral, orbit or dolly through the capture), built once and cached",
+)
+def get_video(
+    scene_id: SceneId,
+    svc: Svc,
+    owner: Owner,
+    path: PathName = "spiral",
+) -> Response:
+    ready_scene(svc, scene_id, owner)
+    mp4, state_key = video_keys(scene_id, path)
+    if svc.storage.exists(mp4):
+        return FileResponse(svc.storage.path(mp4), media_type="video/mp4", headers={"Cache-Control": "private"})
+    state = json.loads(svc.storage.read_bytes(state_key)) if svc.storage.exists(state_key) else None
+    if state is not None and "error" in state:
+        svc.storage.path(state_key).unlink(missing_ok=True)  # the next request tries again
+        raise APIError(500, ErrorCode.video_failed, f"rendering the {path} video failed: {state['error']}")
+    if state is None or time.time() - state["updated_at"] > VIDEO_RESEND_AFTER_S:
+        state = {"progress": 0.0, "updated_at": time.time()}
+        svc.storage.write_bytes(state_key, json.dumps(state).encode())
+        svc.queue.submit_video(scene_id, path)
+    body = VideoBuilding(progress=round(float(state["progress"]), 3))
+    return JSONResponse(body.model_dump(), status_code=202, headers={"Retry-After": "5"})
+
+
+@cache
+def _viewer_html() -> str:
+    return (Path(__file__).resolve().parents[1] / "static" / "viewer.html").read_text()
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/viewer",
+    response_class=HTMLResponse,
+    summary="The WebGL2 viewer page (holds no data and needs no key; give one as #key=... in the URL)",
+)
+def viewer(scene_id: SceneId) -> Response:
+    del scene_id  # the page reads it from its own URL
+    csp = "default-src 'none'; script-src 'unsafe-inline'; style-src 'unsafe-inline'; connect-src 'self'; img-src data:"
+    return HTMLResponse(_viewer_html(), headers={"Content-Security-Policy": csp, "Cache-Control": "no-cache"})
