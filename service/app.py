@@ -66,7 +66,7 @@ def create_app(
     stopped with the app's lifespan. Without ``limiter``: the quotas are counted in Redis (the
     broker) in celery mode, in memory embedded."""
     settings = settings or load_settings()
-    store = SceneStore(settings.resolved_database_url)
+    store = SceneStore(settings.resolved_database_url, migrate=settings.migrate_on_start)
     storage = LocalStorage(settings.resolved_storage_dir)
     keys = KeyRing.load(settings.api_keys, settings.api_keys_file)
     runner = None

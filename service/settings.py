@@ -24,6 +24,11 @@ class Settings(BaseSettings):
     # -- where things live ------------------------------------------------------------------
     data_dir: Path = Field(Path("cmc-data"), description="root for the default database and storage")
     database_url: str = Field("", description="SQLAlchemy URL; default: SQLite file in data_dir")
+    migrate_on_start: bool = Field(
+        True,
+        description="migrate the database schema when the API or a worker starts (service.migrate); the "
+        "deployment turns this off and runs the compose service 'migrate' once instead",
+    )
     storage_dir: Path | None = Field(None, description="artifact storage root; default data_dir/storage")
     broker_url: str = Field("", description="Celery broker (redis://...); empty: no Celery (embedded runner)")
     cpu_queue: str = Field("cpu", description="Celery queue of pose estimation")

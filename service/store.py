@@ -51,10 +51,8 @@ from sqlalchemy import (
     create_engine,
     event,
     func,
-    inspect,
     or_,
     select,
-    text,
     update,
 )
 from sqlalchemy.engine import make_url
@@ -106,8 +104,8 @@ class SceneRow(Base):
     send_at: Mapped[float | None] = mapped_column(Float, nullable=True, index=True)  # outbox: message due
 
 
-# Webhooks live in tables of their own (created beside an existing database's ``scenes``, which
-# needs no migration): a scene's callback URL, and one row per event to deliver.
+# Webhooks live in tables of their own: a scene's callback URL, and one row per event to deliver.
+# A schema change here needs a revision in service/migrations/versions/ (tests/test_migrations.py).
 class CallbackRow(Base):
     __tablename__ = "scene_callbacks"
 
@@ -207,7 +205,9 @@ class Heartbeat:
 class SceneStore:
     """All reads and writes of scene records. Thread-safe (one engine, a session per call)."""
 
-    def __init__(self, url: str):
+    def __init__(self, url: str, migrate: bool = True):
+        """Open the database at SQLAlchemy ``url``; with ``migrate``, first bring its schema to
+        the newest revision (:mod:`service.migrate`)."""
         kwargs: dict[str, Any] = {"pool_pre_ping": True}
         database = make_url(url).database
         if url.startswith("sqlite") and database and database != ":memory:":
@@ -217,8 +217,10 @@ class SceneStore:
         self.engine = create_engine(url, **kwargs)
         if url.startswith("sqlite"):
             event.listen(self.engine, "connect", _sqlite_pragmas)
-        Base.metadata.create_all(self.engine)
-        _add_missing_columns(self.engine)
+        if migrate:
+            from service.migrate import upgrade
+
+            upgrade(self.engine)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
 
     @contextmanager
@@ -629,20 +631,6 @@ class SceneStore:
             .where(SceneRow.id == scene_id, SceneRow.lease_owner.is_(None), SceneRow.status.not_in(TERMINAL))
             .values(updated_at=time.time(), **fields)
         )
-
-
-def _add_missing_columns(engine: Any) -> None:
-    """Add the columns of :class:`SceneRow` that an existing ``scenes`` table lacks (all added
-    columns are nullable), so a database from an older release opens without a migration tool."""
-    have = {c["name"] for c in inspect(engine).get_columns(SceneRow.__tablename__)}
-    missing = [c for c in SceneRow.__table__.columns if c.name not in have]
-    with engine.begin() as conn:
-        for column in missing:
-            kind = column.type.compile(dialect=engine.dialect)
-            conn.execute(text(f'ALTER TABLE {SceneRow.__tablename__} ADD COLUMN "{column.name}" {kind}'))
-            for index in column.table.indexes:
-                if [c.name for c in index.columns] == [column.name]:
-                    index.create(conn, checkfirst=True)
 
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:

@@ -446,7 +446,20 @@ def test_healthchecks_and_dependencies(services: dict[str, Any]) -> None:
         assert isinstance(deps, dict), f"{name}: depends_on without conditions"
         for dep in ("db", "redis"):
             assert deps[dep]["condition"] == "service_healthy", f"{name} does not wait for {dep}"
-        assert all(d["condition"] == "service_healthy" for d in deps.values())
+        assert deps["migrate"]["condition"] == "service_completed_successfully", f"{name} may see an old schema"
+        assert all(d["condition"] == "service_healthy" for dep, d in deps.items() if dep != "migrate")
+
+
+def test_migrations_run_once_before_the_api_and_workers(services: dict[str, Any]) -> None:
+    """The deployed mode migrates the schema in a one-shot step (python -m service.migrate) that
+    waits for the database; the API and the workers do not migrate on start themselves."""
+    migrate = services["migrate"]
+    assert command(migrate) == ["python", "-m", "service.migrate"]
+    assert migrate["image"] == services["api"]["image"] and str(migrate.get("restart", "no")) == "no"
+    assert migrate["depends_on"]["db"]["condition"] == "service_healthy"
+    assert environment(migrate)["CMC_DATABASE_URL"] == environment(services["api"])["CMC_DATABASE_URL"]
+    for name in APP_SERVICES:
+        assert environment(services[name])["CMC_MIGRATE_ON_START"] == "false", name
 
 
 def test_gpu_worker(services: dict[str, Any]) -> None:

@@ -82,7 +82,7 @@ _shutdown = threading.Event()  # set: the job running in this process checkpoint
 
 def new_context() -> JobContext:
     queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue, settings.webhook_queue)
-    store = SceneStore(settings.resolved_database_url)
+    store = SceneStore(settings.resolved_database_url, migrate=settings.migrate_on_start)
     return JobContext(store, LocalStorage(settings.resolved_storage_dir), queue, settings, shutdown=_shutdown)
 
 

@@ -1,0 +1,63 @@
+"""Schema migrations of the scene store (Alembic; revisions in service/migrations/versions/).
+
+:func:`upgrade` brings a database to the newest revision: an empty one is created, one made
+before migrations existed is completed by the baseline revision. The store runs it on open when
+``CMC_MIGRATE_ON_START`` is true (the default: embedded mode, tests); the deployment turns that
+off and runs ``python -m service.migrate`` once, as the compose service ``migrate``, before the
+API and the workers start.
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+from pathlib import Path
+from typing import Any
+
+from alembic import command
+from alembic.config import Config
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+
+MIGRATIONS = Path(__file__).resolve().parent / "migrations"
+BASELINE = "0001"  # the schema of the first release with migrations
+
+
+def _config(connection: Any) -> Config:
+    cfg = Config()
+    cfg.set_main_option("script_location", str(MIGRATIONS))
+    cfg.attributes["connection"] = connection
+    return cfg
+
+
+def head() -> str:
+    """The newest revision."""
+    return ScriptDirectory.from_config(_config(None)).get_current_head() or ""
+
+
+def current(engine: Any) -> str | None:
+    """The revision the database is at; None: not under migrations (empty, or made before)."""
+    with engine.connect() as conn:
+        return MigrationContext.configure(conn).get_current_revision()
+
+
+def upgrade(engine: Any) -> None:
+    """Migrate the database of SQLAlchemy ``engine`` to the newest revision (no-op when it is).
+    A database at the baseline is completed first (:func:`complete` of revision 0001): one made
+    before migrations and stamped may lack a column that its release had not added yet."""
+    with engine.begin() as conn:
+        if MigrationContext.configure(conn).get_current_revision() == BASELINE:
+            import_module("service.migrations.versions.0001_baseline").complete(conn)
+        command.upgrade(_config(conn), "head")
+
+
+def main() -> None:
+    from service.settings import load_settings
+    from service.store import SceneStore
+
+    store = SceneStore(load_settings().resolved_database_url, migrate=True)
+    print(f"scene store at revision {current(store.engine)} (head {head()})")
+    store.close()
+
+
+if __name__ == "__main__":
+    main()

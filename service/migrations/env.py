@@ -1,0 +1,12 @@
+"""Alembic environment: migrations run on the connection :func:`service.migrate.upgrade` passes in
+``config.attributes["connection"]`` (the store's own engine, so SQLite in memory works too)."""
+
+from alembic import context
+
+from service.store import Base
+
+connection = context.config.attributes["connection"]
+# batch mode: SQLite alters a table by copying it, which later revisions will need
+context.configure(connection=connection, target_metadata=Base.metadata, render_as_batch=True)
+with context.begin_transaction():
+    context.run_migrations()

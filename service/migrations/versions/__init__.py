@@ -1,0 +1,1 @@
+"""Revisions, oldest first; each file's ``revision`` / ``down_revision`` chain them."""
