@@ -72,7 +72,7 @@ def create_app(
     runner = None
     if queue is None:
         if settings.mode == "celery":
-            queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue, settings.webhook_queue)
+            queue = CeleryJobQueue.from_settings(settings)
         else:
             runner = (embedded_runner or installed_runner())(store, storage, settings)
             queue = runner

@@ -9,9 +9,12 @@ storage hold everything else. The embedded runner
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from service.store import Phase
+
+if TYPE_CHECKING:
+    from service.settings import Settings
 
 TASK_NAMES: dict[str, str] = {
     "poses": "cmc.poses",
@@ -19,6 +22,21 @@ TASK_NAMES: dict[str, str] = {
     "video": "cmc.video",
     "webhook": "cmc.webhook",
 }
+
+# Task key -> the queue it goes to, by the Settings field that names the queue: the one queue map,
+# read by the API when it sends (CeleryJobQueue) and by the workers' task routes (worker.celery_app).
+TASK_QUEUES: dict[str, str] = {
+    "poses": "cpu_queue",
+    "train": "gpu_queue",
+    "video": "gpu_queue",
+    "webhook": "webhook_queue",
+}
+
+
+def task_queues(cpu_queue: str = "cpu", gpu_queue: str = "gpu", webhook_queue: str = "webhooks") -> dict[str, str]:
+    """Task key -> Celery queue name, for the given queue names (:data:`TASK_QUEUES`)."""
+    names = {"cpu_queue": cpu_queue, "gpu_queue": gpu_queue, "webhook_queue": webhook_queue}
+    return {task: names[field] for task, field in TASK_QUEUES.items()}
 
 
 class JobQueue(Protocol):
@@ -51,12 +69,15 @@ class CeleryJobQueue:
     ):
         from celery import Celery
 
-        # task key -> queue
-        self.queues = {"poses": cpu_queue, "train": gpu_queue, "video": gpu_queue, "webhook": webhook_queue}
+        self.queues = task_queues(cpu_queue, gpu_queue, webhook_queue)  # task key -> queue
         self.app = Celery("cmc-api", broker=broker_url)
         self.app.conf.broker_connection_retry_on_startup = True
         self.app.conf.broker_transport_options = {"max_retries": 3, "interval_start": 0.2, "interval_step": 0.5}
         self.broker_url = broker_url
+
+    @staticmethod
+    def from_settings(settings: Settings) -> CeleryJobQueue:
+        return CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue, settings.webhook_queue)
 
     def submit(self, scene_id: str, phase: Phase) -> None:
         self.app.send_task(TASK_NAMES[phase], args=[scene_id], queue=self.queues[phase])

@@ -38,7 +38,7 @@ from celery import Celery
 from celery.signals import worker_ready, worker_shutting_down
 
 from cmc.images import DECODE_MEMORY
-from service.jobs import TASK_NAMES, CeleryJobQueue
+from service.jobs import TASK_NAMES, CeleryJobQueue, task_queues
 from service.settings import Settings, load_settings
 from service.storage import LocalStorage
 from service.store import SceneStore
@@ -52,18 +52,14 @@ log = logging.getLogger("cmc.worker")
 def create_celery(settings: Settings) -> Celery:
     app = Celery("cmc-worker", broker=settings.broker_url or "redis://127.0.0.1:6379/0")
     longest = max(settings.poses_time_limit, settings.train_time_limit)
+    queues = task_queues(settings.cpu_queue, settings.gpu_queue, settings.webhook_queue)
     app.conf.update(
         task_acks_late=True,
         task_reject_on_worker_lost=True,
         worker_prefetch_multiplier=1,
         broker_transport_options={"visibility_timeout": int(longest + 3600)},
         broker_connection_retry_on_startup=True,
-        task_routes={
-            TASK_NAMES["poses"]: {"queue": settings.cpu_queue},
-            TASK_NAMES["train"]: {"queue": settings.gpu_queue},
-            TASK_NAMES["video"]: {"queue": settings.gpu_queue},
-            TASK_NAMES["webhook"]: {"queue": settings.webhook_queue},
-        },
+        task_routes={TASK_NAMES[task]: {"queue": queue} for task, queue in queues.items()},
         task_default_queue=settings.cpu_queue,
         task_ignore_result=True,
         worker_hijack_root_logger=False,
@@ -81,7 +77,7 @@ _shutdown = threading.Event()  # set: the job running in this process checkpoint
 
 
 def new_context() -> JobContext:
-    queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue, settings.webhook_queue)
+    queue = CeleryJobQueue.from_settings(settings)
     store = SceneStore(settings.resolved_database_url, migrate=settings.migrate_on_start)
     return JobContext(store, LocalStorage(settings.resolved_storage_dir), queue, settings, shutdown=_shutdown)
 
@@ -182,4 +178,3 @@ def _on_shutdown(**_: object) -> None:
             os.kill(child.pid, signal.SIGTERM)
         except (ProcessLookupError, TypeError):  # gone already, or not started
             pass
-
