@@ -42,11 +42,13 @@ def current(engine: Any) -> str | None:
 
 def upgrade(engine: Any) -> None:
     """Migrate the database of SQLAlchemy ``engine`` to the newest revision (no-op when it is).
-    A database at the baseline is completed first (:func:`complete` of revision 0001): one made
-    before migrations and stamped may lack a column that its release had not added yet."""
+    First the baseline's tables and columns that the models still use are completed (``complete``
+    of revision 0001): a database made before migrations may lack a column its release had not
+    added yet, whether or not it was stamped since."""
+    from service.store import Base
+
     with engine.begin() as conn:
-        if MigrationContext.configure(conn).get_current_revision() == BASELINE:
-            import_module("service.migrations.versions.0001_baseline").complete(conn)
+        import_module("service.migrations.versions.0001_baseline").complete(conn, Base.metadata)
         command.upgrade(_config(conn), "head")
 
 

@@ -20,10 +20,10 @@ from typing import Protocol
 _KEY = re.compile(r"^[0-9a-f]{32}(/[A-Za-z0-9][A-Za-z0-9._-]{0,99})*$")
 
 
-def video_keys(scene_id: str, path: str) -> tuple[str, str]:
-    """Keys of a camera-path video (``path``: spiral, orbit, dolly) and of its build state (JSON:
-    ``progress`` 0-1 and ``updated_at`` UNIX seconds, or ``error``; removed once the video exists)."""
-    return f"{scene_id}/videos/{path}.mp4", f"{scene_id}/videos/{path}.json"
+def video_key(scene_id: str, path: str) -> str:
+    """Key of a camera-path video (``path``: spiral, orbit, dolly); its build is a record of
+    service.videos."""
+    return f"{scene_id}/videos/{path}.mp4"
 
 
 class StorageError(ValueError):

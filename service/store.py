@@ -130,6 +130,24 @@ class DeliveryRow(Base):
     delivered_at: Mapped[float | None] = mapped_column(Float, nullable=True)
 
 
+class VideoRow(Base):
+    """One camera-path video build of a scene (service/videos.py): record, lease, progress, error."""
+
+    __tablename__ = "video_jobs"
+
+    scene_id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    path: Mapped[str] = mapped_column(String(10), primary_key=True)  # spiral, orbit, dolly
+    status: Mapped[str] = mapped_column(String(10), index=True)  # building, ready, failed, cancelled
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    error: Mapped[str | None] = mapped_column(String(2000), nullable=True)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    lease_owner: Mapped[str | None] = mapped_column(String(100), nullable=True)
+    lease_expires_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    created_at: Mapped[float] = mapped_column(Float)
+    updated_at: Mapped[float] = mapped_column(Float)
+
+
 @dataclass(frozen=True)
 class Delivery:
     """A snapshot of one webhook delivery: ``attempts`` lists ``{at, status_code, error,
@@ -222,6 +240,9 @@ class SceneStore:
 
             upgrade(self.engine)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
+        from service.videos import VideoJobs
+
+        self.videos = VideoJobs(self._session)  # camera-path video builds
 
     @contextmanager
     def _session(self) -> Iterator[Session]:
@@ -356,6 +377,11 @@ class SceneStore:
             row.deleted, row.cancel_requested, row.updated_at = True, True, now
             if row.status not in TERMINAL:
                 row.status, row.finished_at = "cancelled", now
+            s.execute(  # and its video builds
+                update(VideoRow)
+                .where(VideoRow.scene_id == scene_id, VideoRow.status == "building")
+                .values(status="cancelled", cancel_requested=True, updated_at=now)
+            )
 
     def purge(self, scene_id: str) -> None:
         """Remove a record outright (a scene whose job could not even be queued)."""

@@ -1,7 +1,7 @@
 """Schema migrations of the scene store (service.migrate), on SQLite and on the real PostgreSQL at
 127.0.0.1:5432 (a throw-away database per test): an empty database migrates to the newest
 revision with exactly the schema the models describe; a database made by the release before
-migrations (tables created from the models, no ``alembic_version``) keeps its rows and is brought
+migrations (the baseline's tables, no ``alembic_version``) keeps its rows and is brought
 under migrations; a database already at the newest revision is left alone."""
 
 from __future__ import annotations
@@ -9,11 +9,12 @@ from __future__ import annotations
 import os
 import uuid
 from collections.abc import Iterator
+from importlib import import_module
 
 import pytest
 from sqlalchemy import create_engine, inspect, text
 
-from service.migrate import current, head, upgrade
+from service.migrate import BASELINE, current, head, upgrade
 from service.store import Base, SceneStore
 
 PG_ADMIN = os.environ.get("CMC_TEST_POSTGRES", "postgresql://postgres@127.0.0.1:5432/postgres")
@@ -77,14 +78,15 @@ def test_an_empty_database_migrates_to_the_models_schema(url: str) -> None:
 
 @pytest.mark.parametrize("stamped", [False, True])
 def test_a_database_of_the_previous_release_migrates_and_keeps_its_rows(url: str, stamped: bool) -> None:
-    """The previous revision is the schema the release before migrations made on start
-    (``create_all`` of today's models); stamped or not, it opens and its scenes survive."""
+    """The previous release made the baseline's tables on start (``create_all``, no version
+    table); stamped at the baseline or not, it migrates to the newest revision and its scenes
+    survive."""
     engine = create_engine(url)
-    Base.metadata.create_all(engine)
+    import_module("service.migrations.versions.0001_baseline").META.create_all(engine)
     if stamped:
         with engine.begin() as conn:
             conn.execute(text("CREATE TABLE alembic_version (version_num VARCHAR(32) NOT NULL PRIMARY KEY)"))
-            conn.execute(text(f"INSERT INTO alembic_version VALUES ('{head()}')"))
+            conn.execute(text(f"INSERT INTO alembic_version VALUES ('{BASELINE}')"))
     engine.dispose()
     old = SceneStore(url, migrate=False)
     rec, _ = old.create("o", {"preset": "fast"}, ["a.jpg", "b.jpg"], ["00.jpg", "01.jpg"], False, None, None)
@@ -98,7 +100,7 @@ def test_a_database_of_the_previous_release_migrates_and_keeps_its_rows(url: str
 def test_an_old_scenes_table_gets_its_missing_columns(url: str) -> None:
     """A database from before the outbox (no ``send_at``) is completed by the baseline revision."""
     engine = create_engine(url)
-    Base.metadata.create_all(engine)
+    import_module("service.migrations.versions.0001_baseline").META.create_all(engine)
     with engine.begin() as conn:
         conn.execute(text("DROP INDEX ix_scenes_send_at"))
         conn.execute(text("ALTER TABLE scenes DROP COLUMN send_at"))

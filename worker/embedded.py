@@ -59,8 +59,13 @@ class EmbeddedRunner:
             if rec.lease_owner is not None:  # held by the previous process of this data folder
                 self.ctx.store.release(rec.id, rec.lease_owner)
             self.submit(rec.id, rec.phase)  # type: ignore[arg-type]
-        if unfinished:
-            log.warning("resuming %d unfinished job(s) from the last run", len(unfinished))
+        videos = self.ctx.store.videos.unfinished()
+        for video in videos:
+            if video.lease_owner is not None:
+                self.ctx.store.videos.release(video.scene_id, video.path, video.lease_owner)
+            self.submit_video(video.scene_id, video.path)
+        if unfinished or videos:
+            log.warning("resuming %d unfinished job(s), %d video(s) from the last run", len(unfinished), len(videos))
         self._thread.start()
         self.webhooks.start()
 

@@ -41,7 +41,7 @@ from typing import Any, Literal
 from service.errors import ErrorCode
 from service.jobs import JobQueue
 from service.settings import Settings
-from service.storage import Storage, video_keys
+from service.storage import Storage, video_key
 from service.store import Phase, SceneRecord, SceneStore
 
 log = logging.getLogger("cmc.worker")
@@ -382,34 +382,47 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     ckpt.unlink(missing_ok=True)  # the baked MPI is the product; the checkpoint was for resuming
 
 
+class VideoStopped(Exception):
+    """The video build was cancelled (its scene deleted) or another worker holds it now."""
+
+
 def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
     """Render the camera-path video ``path`` (spiral, orbit, dolly) of a ready scene into
-    storage, once: the API serves the cached file from then on."""
+    storage, if its build record (service.videos) can be claimed. Progress renews the lease at
+    most once a second; a cancelled or lost build stops at the next frame. Returns 'skipped',
+    'done', 'failed' or 'stopped'."""
     from cmc.baking import BakedScene
     from cmc.video import render_path_video
 
-    mp4, state = video_keys(scene_id, path)
+    s, videos = ctx.settings, ctx.store.videos
     rec = ctx.store.get(scene_id)
-    if rec is None or rec.status != "ready" or ctx.storage.exists(mp4):
+    if rec is None or rec.status != "ready" or not videos.claim(scene_id, path, ctx.worker_id, s.lease_seconds):
         return "skipped"
+    mp4 = video_key(scene_id, path)
     last = [0.0]
 
     def on_frame(done: int, total: int) -> None:
-        if time.monotonic() - last[0] > 1.0 or done == total:
+        if time.monotonic() - last[0] > s.heartbeat_seconds or done == total:
             last[0] = time.monotonic()
-            ctx.storage.write_bytes(state, json.dumps({"progress": done / total, "updated_at": time.time()}).encode())
+            hb = videos.heartbeat(scene_id, path, ctx.worker_id, s.lease_seconds, done / total)
+            if hb.cancel_requested or not hb.holds_lease:
+                raise VideoStopped(f"video {path} of {scene_id} stopped")
 
     try:
         baked = BakedScene.load(ctx.storage.path(f"{scene_id}/baked"))
         render_path_video(baked, path, ctx.storage.path(mp4), on_frame=on_frame)  # type: ignore[arg-type]
+    except VideoStopped:
+        ctx.storage.path(mp4).unlink(missing_ok=True)
+        return "stopped"
     except Exception as e:
         log.exception("video %s of %s failed", path, scene_id)
-        error = {"error": f"{type(e).__name__}: {e}", "updated_at": time.time()}
-        ctx.storage.write_bytes(state, json.dumps(error).encode())
-        ctx.store.add_event(scene_id, "video.failed", {"path": path, "error": error["error"]})
-        kick_webhooks(ctx, scene_id)
+        error = f"{type(e).__name__}: {e}"
+        if videos.finish(scene_id, path, ctx.worker_id, error=error):
+            ctx.store.add_event(scene_id, "video.failed", {"path": path, "error": error})
+            kick_webhooks(ctx, scene_id)
         return "failed"
-    ctx.storage.path(state).unlink(missing_ok=True)
+    if not videos.finish(scene_id, path, ctx.worker_id):
+        return "stopped"  # cancelled at the last frame
     after = ctx.store.get(scene_id)
     if after is None:  # deleted while rendering
         ctx.storage.delete_scene(scene_id)
@@ -420,8 +433,8 @@ def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
 
 
 def requeue_stale_jobs(ctx: JobContext) -> list[str]:
-    """Send again the jobs whose worker died (lease expired) or whose message was lost.
-    Safe to run from every worker at once: each job is re-queued by one of them."""
+    """Send again the jobs and video builds whose worker died (lease expired) or whose message
+    was lost. Safe to run from every worker at once: each is re-queued by one of them."""
     requeued = []
     for rec in ctx.store.stale_jobs(ctx.settings.requeue_after_seconds):
         if ctx.store.requeue(rec, ctx.settings.max_attempts, detail=WAITING):
@@ -431,4 +444,11 @@ def requeue_stale_jobs(ctx: JobContext) -> list[str]:
             kick_webhooks(ctx, rec.id)  # it may have failed (worker_lost)
     if requeued:
         deliver(ctx)
+    for video in ctx.store.videos.stale(ctx.settings.requeue_after_seconds):  # video builds alike
+        if ctx.store.videos.requeue(video, ctx.settings.max_attempts):
+            log.warning("video %s of %s re-sent: its worker stopped answering", video.path, video.scene_id)
+            try:
+                ctx.queue.submit_video(video.scene_id, video.path)
+            except Exception as e:  # the broker is down: the next round sends it (it stays stale)
+                log.warning("sending video %s of %s failed: %s", video.path, video.scene_id, e)
     return requeued

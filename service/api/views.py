@@ -4,7 +4,7 @@ camera paths and their videos, the viewer page."""
 from __future__ import annotations
 
 import json
-import time
+import logging
 from functools import cache
 from pathlib import Path
 from typing import Annotated, Literal
@@ -42,8 +42,9 @@ from service.schemas import (
     VideoBuilding,
 )
 from service.settings import Settings
-from service.storage import video_keys
+from service.storage import video_key
 
+log = logging.getLogger("cmc.api")
 router = APIRouter()
 
 
@@ -231,9 +232,6 @@ async def export_glb(
     return FileResponse(svc.storage.path(key), media_type="model/gltf-binary", headers=headers)
 
 
-VIDEO_RESEND_AFTER_S = 600  # a build whose state was not updated for this long died: send it again
-
-
 @router.get(
     "/v1/scenes/{scene_id}/video",
     responses={
@@ -252,18 +250,21 @@ def get_video(
     path: PathName = "spiral",
 ) -> Response:
     ready_scene(svc, scene_id, owner)
-    mp4, state_key = video_keys(scene_id, path)
-    if svc.storage.exists(mp4):
+    mp4 = video_key(scene_id, path)
+    job = svc.store.videos.get(scene_id, path)
+    if (job is None or job.status == "ready") and svc.storage.exists(mp4):
         return FileResponse(svc.storage.path(mp4), media_type="video/mp4", headers={"Cache-Control": "private"})
-    state = json.loads(svc.storage.read_bytes(state_key)) if svc.storage.exists(state_key) else None
-    if state is not None and "error" in state:
-        svc.storage.path(state_key).unlink(missing_ok=True)  # the next request tries again
-        raise APIError(500, ErrorCode.video_failed, f"rendering the {path} video failed: {state['error']}")
-    if state is None or time.time() - state["updated_at"] > VIDEO_RESEND_AFTER_S:
-        state = {"progress": 0.0, "updated_at": time.time()}
-        svc.storage.write_bytes(state_key, json.dumps(state).encode())
-        svc.queue.submit_video(scene_id, path)
-    body = VideoBuilding(progress=round(float(state["progress"]), 3))
+    if job is not None and job.status == "failed":
+        svc.store.videos.forget(scene_id, path)  # the next request tries again
+        raise APIError(500, ErrorCode.video_failed, f"rendering the {path} video failed: {job.error}")
+    if job is None or job.status != "building":
+        job, started = svc.store.videos.request(scene_id, path)
+        if started:
+            try:
+                svc.queue.submit_video(scene_id, path)
+            except Exception:  # the broker is down: the reaper sends it once the message is overdue
+                log.warning("could not send video %s of %s", path, scene_id, exc_info=True)
+    body = VideoBuilding(progress=round(float(job.progress), 3))
     return JSONResponse(body.model_dump(), status_code=202, headers={"Retry-After": "5"})
 
 

@@ -79,18 +79,22 @@ def upgrade() -> None:
     complete(op.get_bind())
 
 
-def complete(bind: sa.Connection) -> None:
+def complete(bind: sa.Connection, models: sa.MetaData | None = None) -> None:
     """Create the missing tables of this revision and add the missing columns (with their
-    indexes) of existing ones. Idempotent; :func:`service.migrate.upgrade` also runs it on a
-    database stamped at this revision, which may be an older release's made by hand."""
+    indexes) of existing ones; with ``models``, only the tables and columns they still have.
+    Idempotent; :func:`service.migrate.upgrade` runs it before every upgrade, for a database an
+    older release made that was stamped by hand or lost a column."""
     inspector = sa.inspect(bind)
     for table in META.sorted_tables:
+        if models is not None and table.name not in models.tables:
+            continue
         if not inspector.has_table(table.name):
             table.create(bind)
             continue
         have = {c["name"] for c in inspector.get_columns(table.name)}
+        wanted = models.tables[table.name].c if models is not None else table.c
         for column in table.columns:  # an older release's table: only nullable columns were added
-            if column.name not in have:
+            if column.name not in have and column.name in wanted:
                 kind = column.type.compile(dialect=bind.dialect)
                 bind.execute(sa.text(f'ALTER TABLE {table.name} ADD COLUMN "{column.name}" {kind}'))
                 for index in table.indexes:
