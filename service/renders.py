@@ -33,6 +33,7 @@ import numpy as np
 from PIL import Image
 
 from service.errors import APIError, ErrorCode
+from service.layout import SceneLayout
 from service.storage import Storage
 
 T = TypeVar("T")
@@ -68,7 +69,7 @@ class BakedCache:
             with self._lock:
                 if scene_id in self._scenes:
                     return self._scenes[scene_id]
-            baked = BakedScene.load(self.storage.path(f"{scene_id}/baked"))
+            baked = BakedScene.load(self.storage.path(SceneLayout(scene_id).baked()))
             with self._lock:
                 self._scenes[scene_id] = baked
                 while len(self._scenes) > 1 and self.nbytes > self.capacity_bytes:

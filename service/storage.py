@@ -1,10 +1,9 @@
 """Artifact storage: one interface, a local-filesystem implementation.
 
-Artifacts of a scene live under keys ``{scene_id}/...``: ``uploads/`` (the photos as sent, under
-our own names), ``scene/`` (working images + cameras.json), ``checkpoint.pt``, ``baked/`` (the
-``cmc-mpi`` folder) and ``videos/``. Keys are built by the service from scene ids (hex) and fixed
-names only; :meth:`LocalStorage.path` refuses anything else, so no user-supplied name ever
-becomes a path. In docker-compose the root is a volume shared by the API and the workers.
+Artifacts of a scene live under keys ``{scene_id}/...``, every one named by
+:class:`service.layout.SceneLayout`. Keys are built from scene ids (hex) and fixed names only;
+:meth:`LocalStorage.path` refuses anything else, so no user-supplied name ever becomes a path.
+In docker-compose the root is a volume shared by the API and the workers.
 """
 
 from __future__ import annotations
@@ -18,12 +17,6 @@ from pathlib import Path
 from typing import Protocol
 
 _KEY = re.compile(r"^[0-9a-f]{32}(/[A-Za-z0-9][A-Za-z0-9._-]{0,99})*$")
-
-
-def video_key(scene_id: str, path: str) -> str:
-    """Key of a camera-path video (``path``: spiral, orbit, dolly); its build is a record of
-    service.videos."""
-    return f"{scene_id}/videos/{path}.mp4"
 
 
 class StorageError(ValueError):

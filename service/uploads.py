@@ -29,6 +29,7 @@ from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
 from service.errors import APIError, ErrorCode
+from service.layout import ClientNames, SceneLayout
 from service.schemas import SceneOptions
 from service.settings import Settings
 from service.storage import Storage
@@ -97,7 +98,8 @@ class _Reader:
                 raise APIError(422, ErrorCode.too_many_images, f"send at most {self.s.max_images} images")
             filename = params.get(b"filename", b"").decode("utf-8", "replace")
             filename = Path(filename.replace("\\", "/")).name or f"image{len(images) + 1}"
-            part = ImagePart(filename[:200], self.storage.path(f"{self.scene_id}/uploads/{len(images):02d}.upload"))
+            key = SceneLayout(self.scene_id).upload(f"{len(images):02d}.upload")
+            part = ImagePart(filename[:200], self.storage.path(key))
             images.append(part)
             self._file = part.path.open("wb")
         elif self._name in ("cameras", "options", "callback_url"):
@@ -197,7 +199,8 @@ def check_images(upload: Upload, settings: Settings) -> list[str]:
                 413, ErrorCode.image_too_large, f"{label} has more than {settings.max_image_pixels} pixels"
             ) from None
         except SceneError as e:
-            raise APIError(422, ErrorCode.invalid_images, str(e).replace(part.path.name, label)) from None
+            message = ClientNames([part.path.name], [label]).in_text(str(e))
+            raise APIError(422, ErrorCode.invalid_images, message) from None
         final = part.path.with_name(f"{k:02d}{_EXTENSIONS.get(info.format, '.img')}")
         part.path.replace(final)
         part.path = final

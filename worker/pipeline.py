@@ -40,8 +40,9 @@ from typing import Any, Literal
 
 from service.errors import ErrorCode
 from service.jobs import JobQueue
+from service.layout import ClientNames, SceneLayout
 from service.settings import Settings
-from service.storage import Storage, video_key
+from service.storage import Storage
 from service.store import Phase, SceneRecord, SceneStore
 
 log = logging.getLogger("cmc.worker")
@@ -160,7 +161,7 @@ def run_job(ctx: JobContext, scene_id: str, phase: Phase) -> str:
         except Exception as e:
             code = failure_code(e)
             if code is not None:
-                ctx.store.fail(scene_id, code, _user_names(rec, str(e)))
+                ctx.store.fail(scene_id, code, ClientNames(rec.upload_files, rec.upload_names).in_text(str(e)))
                 outcome = "failed"
             elif hb.reason is None:
                 log.error("job %s phase %s crashed:\n%s", scene_id, phase, traceback.format_exc())
@@ -202,13 +203,6 @@ def kick_webhooks(ctx: JobContext, scene_id: str) -> None:
     from worker.webhooks import kick
 
     kick(ctx, scene_id)
-
-
-def _user_names(rec: SceneRecord, message: str) -> str:
-    """Error messages name photos by our storage names; say the client's names instead."""
-    for ours, theirs in zip(rec.upload_files, rec.upload_names, strict=True):
-        message = message.replace(ours, theirs)
-    return message
 
 
 def _fresh_dir(ctx: JobContext, key: str) -> Path:
@@ -256,8 +250,9 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     eta = round(REFERENCE_POSES_S + later_s, 1)
     hb.set(status="estimating_poses", progress=0.0, eta_seconds=eta, detail="estimating camera poses")
     hb.flush()
-    scene_dir = _fresh_dir(ctx, f"{rec.id}/scene")
-    uploads = [ctx.storage.path(f"{rec.id}/uploads/{name}") for name in rec.upload_files]
+    layout = SceneLayout(rec.id)
+    scene_dir = _fresh_dir(ctx, layout.scene_dir)
+    uploads = [ctx.storage.path(layout.upload(name)) for name in rec.upload_files]
     options = PoseOptions(
         long_side=int(rec.options["resolution"]),
         seed=int(rec.options["seed"]),
@@ -268,7 +263,7 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     hooks = dict(should_stop=hb.should_stop, on_stage=on_stage)
     try:
         if rec.has_cameras:
-            cameras = json.loads(ctx.storage.read_bytes(f"{rec.id}/uploads/cameras.json"))
+            cameras = json.loads(ctx.storage.read_bytes(layout.cameras_upload))
             result = poses_from_client(uploads, cameras, scene_dir, options, **hooks)
         else:
             result = estimate_poses(uploads, scene_dir, options, **hooks)
@@ -315,7 +310,8 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     from cmc.training import Progress, Trainer, TrainingCancelled
 
     s, opts = ctx.settings, rec.options
-    scene = load_scene_folder(ctx.storage.path(f"{rec.id}/scene"))
+    layout = SceneLayout(rec.id)
+    scene = load_scene_folder(ctx.storage.path(layout.scene_dir))
     overrides: dict[str, Any] = {"seed": int(opts["seed"])}
     if opts.get("steps"):
         overrides["steps"] = int(opts["steps"])
@@ -330,7 +326,7 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     trainer = Trainer(scene, cfg, device)
-    ckpt = ctx.storage.path(f"{rec.id}/checkpoint.pt")
+    ckpt = ctx.storage.path(layout.checkpoint)
     resumed_from = 0
     if ckpt.exists():
         try:
@@ -371,9 +367,9 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     hb.flush()
     hb.check()
     t0 = time.perf_counter()
-    tmp = _fresh_dir(ctx, f"{rec.id}/baked-tmp")
+    tmp = _fresh_dir(ctx, layout.baked_tmp)
     bake(trainer.model, tmp)
-    final = _fresh_dir(ctx, f"{rec.id}/baked")
+    final = _fresh_dir(ctx, layout.baked())
     os.replace(tmp, final)
     stats["train"].update(seconds_this_attempt=round(train_s, 2), bake_seconds=round(time.perf_counter() - t0, 2))
     ready = dict(progress=1.0, eta_seconds=0.0, detail=None, stats=stats)
@@ -398,7 +394,8 @@ def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
     rec = ctx.store.get(scene_id)
     if rec is None or rec.status != "ready" or not videos.claim(scene_id, path, ctx.worker_id, s.lease_seconds):
         return "skipped"
-    mp4 = video_key(scene_id, path)
+    layout = SceneLayout(scene_id)
+    mp4 = layout.video(path)
     last = [0.0]
 
     def on_frame(done: int, total: int) -> None:
@@ -409,7 +406,7 @@ def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
                 raise VideoStopped(f"video {path} of {scene_id} stopped")
 
     try:
-        baked = BakedScene.load(ctx.storage.path(f"{scene_id}/baked"))
+        baked = BakedScene.load(ctx.storage.path(layout.baked()))
         render_path_video(baked, path, ctx.storage.path(mp4), on_frame=on_frame)  # type: ignore[arg-type]
     except VideoStopped:
         ctx.storage.path(mp4).unlink(missing_ok=True)

@@ -27,6 +27,7 @@ from service.api.deps import (
     too_many,
 )
 from service.errors import APIError, ErrorCode
+from service.layout import ClientNames, SceneLayout
 from service.quotas import STATE_KEY, headers_of
 from service.schemas import (
     ErrorBody,
@@ -189,7 +190,7 @@ async def _create_scene(
         callback_url = await run_in_threadpool(parse_callback_url, upload, s)
         cameras = await run_in_threadpool(parse_cameras, upload, stored)
         if cameras is not None:
-            key, data = f"{scene_id}/uploads/cameras.json", json.dumps(cameras).encode()
+            key, data = SceneLayout(scene_id).cameras_upload, json.dumps(cameras).encode()
             await run_in_threadpool(svc.storage.write_bytes, key, data)
         rec, created = await run_in_threadpool(
             lambda: svc.store.create(
@@ -292,14 +293,12 @@ def get_cameras(
     from cmc.cameras import CameraFile, camera_file_to_dict, load_camera_file
 
     rec = owned_scene(svc, scene_id, owner)
-    path = svc.storage.path(f"{scene_id}/scene/cameras.json")
+    path = svc.storage.path(SceneLayout(scene_id).cameras)
     if rec.phase == "poses" or not path.exists():
         message = f"camera poses are not estimated yet ({rec.status})"
         raise APIError(409, ErrorCode.scene_not_ready, message, {"status": rec.status})
     cf = load_camera_file(path)
-    # working images are named after our storage names; answer with the client's names
-    by_stem = {f.rsplit(".", 1)[0]: name for f, name in zip(rec.upload_files, rec.upload_names, strict=True)}
-    names = [by_stem.get(p.rsplit("/", 1)[-1].rsplit(".", 1)[0], p) for p in cf.file_paths]
+    names = [ClientNames(rec.upload_files, rec.upload_names).of(p) for p in cf.file_paths]  # the client's names
     return camera_file_to_dict(CameraFile(cf.cameras, names, cf.near_far), convention)
 
 

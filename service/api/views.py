@@ -25,6 +25,7 @@ from service.api.deps import (
     ready_scene,
 )
 from service.errors import APIError, ErrorCode, not_found
+from service.layout import SceneLayout
 from service.negotiation import negotiate
 from service.renders import (
     Rendered,
@@ -42,7 +43,6 @@ from service.schemas import (
     VideoBuilding,
 )
 from service.settings import Settings
-from service.storage import video_key
 
 log = logging.getLogger("cmc.api")
 router = APIRouter()
@@ -82,7 +82,7 @@ def get_camera_path(
     from cmc.cameras import CameraFile, camera_file_to_dict
 
     ready_scene(svc, scene_id, owner)
-    manifest = json.loads(svc.storage.read_bytes(f"{scene_id}/baked/mpi.json"))
+    manifest = json.loads(svc.storage.read_bytes(SceneLayout(scene_id).manifest))
     cams = baked_path_cameras(manifest, path, frames)
     data = camera_file_to_dict(CameraFile(cams, [path] * len(cams)), convention)
     size = {"w": data["w"], "h": data["h"], "convention": convention}
@@ -174,7 +174,7 @@ async def render_depth(
 )
 def get_mpi(scene_id: SceneId, svc: Svc, owner: Owner) -> Response:
     ready_scene(svc, scene_id, owner)
-    return FileResponse(svc.storage.path(f"{scene_id}/baked/mpi.json"), media_type="application/json")
+    return FileResponse(svc.storage.path(SceneLayout(scene_id).manifest), media_type="application/json")
 
 
 @router.get(
@@ -184,13 +184,14 @@ def get_mpi(scene_id: SceneId, svc: Svc, owner: Owner) -> Response:
 )
 def get_mpi_file(scene_id: SceneId, name: str, svc: Svc, owner: Owner) -> Response:
     ready_scene(svc, scene_id, owner)
-    manifest_path = svc.storage.path(f"{scene_id}/baked/mpi.json")
+    layout = SceneLayout(scene_id)
+    manifest_path = svc.storage.path(layout.manifest)
     if name == "mpi.json":
         return FileResponse(manifest_path, media_type="application/json")
     atlases = {m["atlas"] for m in json.loads(manifest_path.read_text())["mpis"]}
     if name not in atlases:  # only names the manifest lists; never a client-built path
         raise not_found("file")
-    return FileResponse(svc.storage.path(f"{scene_id}/baked/{name}"), media_type="image/png")
+    return FileResponse(svc.storage.path(layout.baked(name)), media_type="image/png")
 
 
 @router.get(
@@ -214,17 +215,18 @@ async def export_glb(
     from cmc.gltf import nearest_mpi
 
     rec = await run_in_threadpool(ready_scene, svc, scene_id, owner)
-    manifest = json.loads(await run_in_threadpool(svc.storage.read_bytes, f"{scene_id}/baked/mpi.json"))
+    layout = SceneLayout(scene_id)
+    manifest = json.loads(await run_in_threadpool(svc.storage.read_bytes, layout.manifest))
     count = len(manifest["mpis"])
     if mpi is not None and mpi >= count:
         raise APIError(422, ErrorCode.invalid_mpi, f"mpi must be 0 to {count - 1}: the scene has {count} input views")
     index = nearest_mpi(manifest) if mpi is None else mpi
-    key = f"{scene_id}/exports/mpi_{index:02d}.glb"
+    key = layout.export_glb(index)
     if not await run_in_threadpool(svc.storage.exists, key):  # built once per MPI, then served from storage
 
         def write() -> None:
             names = rec.upload_names if len(rec.upload_names) == count else None  # the photos' names
-            data, _ = build(svc.storage.path(f"{scene_id}/baked"), index, names)
+            data, _ = build(svc.storage.path(layout.baked()), index, names)
             svc.storage.write_bytes(key, data)
 
         await svc.render_queue.run(write)
@@ -250,7 +252,7 @@ def get_video(
     path: PathName = "spiral",
 ) -> Response:
     ready_scene(svc, scene_id, owner)
-    mp4 = video_key(scene_id, path)
+    mp4 = SceneLayout(scene_id).video(path)
     job = svc.store.videos.get(scene_id, path)
     if (job is None or job.status == "ready") and svc.storage.exists(mp4):
         return FileResponse(svc.storage.path(mp4), media_type="video/mp4", headers={"Cache-Control": "private"})

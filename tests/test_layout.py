@@ -1,0 +1,38 @@
+"""One artifact layout (service.layout): every key of a scene is one storage accepts and stays
+inside the scene's folder; our stored photo names map back to the client's."""
+
+from __future__ import annotations
+
+import uuid
+
+from service.layout import ClientNames, SceneLayout
+from service.storage import LocalStorage
+
+
+def test_every_key_is_a_valid_storage_key_of_the_scene(tmp_path) -> None:
+    sid = uuid.uuid4().hex
+    layout, storage = SceneLayout(sid), LocalStorage(tmp_path)
+    keys = [
+        layout.upload("00.jpg"),
+        layout.cameras_upload,
+        layout.scene_dir,
+        layout.cameras,
+        layout.checkpoint,
+        layout.baked(),
+        layout.baked("mpi_00.png"),
+        layout.baked_tmp,
+        layout.manifest,
+        layout.export_glb(2),
+        layout.video("orbit"),
+    ]
+    assert len(set(keys)) == len(keys)
+    for key in keys:
+        assert storage.path(key).is_relative_to(storage.path(sid)), key
+    assert layout.manifest == f"{sid}/baked/mpi.json" and layout.video("orbit") == f"{sid}/videos/orbit.mp4"
+
+
+def test_client_names() -> None:
+    names = ClientNames(["00.jpg", "01.heic"], ["IMG_1.JPG", "garden shot.heic"])
+    assert names.of("images/01.png") == "garden shot.heic" and names.of("00.jpg") == "IMG_1.JPG"
+    assert names.of("other.png") == "other.png"
+    assert names.in_text("00.jpg and 01.heic differ") == "IMG_1.JPG and garden shot.heic differ"
