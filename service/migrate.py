@@ -17,9 +17,11 @@ from alembic import command
 from alembic.config import Config
 from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
+from sqlalchemy import text
 
 MIGRATIONS = Path(__file__).resolve().parent / "migrations"
 BASELINE = "0001"  # the schema of the first release with migrations
+LOCK_KEY = 0x434D43  # PostgreSQL advisory lock held while migrating ("CMC")
 
 
 def _config(connection: Any) -> Config:
@@ -48,6 +50,8 @@ def upgrade(engine: Any) -> None:
     from service.store import Base
 
     with engine.begin() as conn:
+        if conn.dialect.name == "postgresql":  # processes starting together migrate one at a time
+            conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": LOCK_KEY})
         import_module("service.migrations.versions.0001_baseline").complete(conn, Base.metadata)
         command.upgrade(_config(conn), "head")
 

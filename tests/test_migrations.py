@@ -110,3 +110,17 @@ def test_an_old_scenes_table_gets_its_missing_columns(url: str) -> None:
     upgrade(engine)  # at head: nothing to do
     assert current(engine) == head()
     engine.dispose()
+
+
+def test_processes_starting_together_migrate_one_at_a_time(url: str) -> None:
+    """On PostgreSQL an advisory lock serialises migrations (the API and workers may start at once)."""
+    if not url.startswith("postgresql"):
+        pytest.skip("SQLite is one process's database (cmc serve)")
+    from concurrent.futures import ThreadPoolExecutor
+
+    engines = [create_engine(url) for _ in range(4)]
+    with ThreadPoolExecutor(4) as pool:
+        list(pool.map(upgrade, engines))
+    assert {current(e) for e in engines} == {head()}
+    for e in engines:
+        e.dispose()
