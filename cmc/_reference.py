@@ -8,8 +8,9 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from cmc.cameras import pixel_rays
 from cmc.fields import MPIField
-from cmc.geometry import pixel_centers, pixel_rays
+from cmc.geometry import pixel_centers
 from cmc.rendering import MPIFrame, RayOutput
 
 

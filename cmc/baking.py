@@ -41,8 +41,9 @@ import numpy as np
 import torch
 from PIL import Image
 
+from cmc.cameras import pixel_rays
 from cmc.fields import MPIField, TextureField
-from cmc.geometry import mean_baseline, pixel_rays, texel_grid
+from cmc.geometry import mean_baseline, texel_grid
 from cmc.images import to_uint8
 from cmc.model import CMCModel
 from cmc.rendering import ImageOutput, MPIFrame, blend_selection, render_image

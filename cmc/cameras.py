@@ -144,6 +144,17 @@ def validate_cameras(K: np.ndarray, world_from_cam: np.ndarray, width: int, heig
         raise CameraError("pose matrices must have last row [0, 0, 0, 1]")
 
 
+def pixel_rays(K, uv):
+    """[..., 3] camera-space ray directions with z = 1 (not unit length) through continuous pixel
+    coordinates ``uv`` [..., 2] (corner at 0) of intrinsics ``K`` [3, 3]: ``K^-1 (u, v, 1)``.
+    NumPy arrays or torch tensors, as given; the one pixel-to-ray of the project."""
+    if isinstance(uv, np.ndarray):
+        return np.concatenate([uv, np.ones_like(uv[..., :1])], -1) @ np.linalg.inv(K).T
+    import torch
+
+    return torch.cat([uv, torch.ones_like(uv[..., :1])], -1) @ torch.linalg.inv(K).T
+
+
 def nearest_rotation(M: np.ndarray) -> np.ndarray:
     """The rotation closest to the 3x3 matrix ``M`` in the Frobenius norm (SVD, det +1)."""
     U, _, Vt = np.linalg.svd(M)

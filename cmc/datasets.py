@@ -20,6 +20,7 @@ from cmc.cameras import (
     cameras_from_llff,
     intrinsics,
     look_at,
+    pixel_rays,
     save_camera_file,
 )
 from cmc.errors import SceneError
@@ -224,10 +225,10 @@ def render_layers(layers: tuple[Layer, ...], cameras: Cameras, supersample: int 
     """Ray-trace the layers: images [N, H, W, 3] and depth (camera z) [N, H, W], exact geometry."""
     w, h, s = cameras.width, cameras.height, supersample
     v, u = np.meshgrid((np.arange(h * s) + 0.5) / s, (np.arange(w * s) + 0.5) / s, indexing="ij")
-    pix = np.stack([u, v, np.ones_like(u)], -1)
+    uv = np.stack([u, v], -1)
     images, depths = [], []
     for K, pose in zip(cameras.K, cameras.world_from_cam, strict=True):
-        d_cam = pix @ np.linalg.inv(K).T  # camera z = 1
+        d_cam = pixel_rays(K, uv)  # camera z = 1
         d = d_cam @ pose[:3, :3].T
         o = pose[:3, 3]
         best_t = np.full(d.shape[:2], np.inf)

@@ -76,12 +76,6 @@ def texel_grid(height: int, width: int, device: torch.device | str = "cpu") -> t
     return torch.stack([gx, gy], -1)
 
 
-def pixel_rays(K: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """[..., 3] camera-space ray directions with z = 1 (not unit length) through continuous pixel
-    coordinates ``uv`` [..., 2] of intrinsics ``K`` [3, 3]: ``K^-1 (u, v, 1)``."""
-    return torch.cat([uv, torch.ones_like(uv[..., :1])], -1) @ torch.linalg.inv(K).T
-
-
 def pixel_centers(width: int, height: int, device: torch.device | str = "cpu") -> torch.Tensor:
     """[H*W, 2] continuous (u, v) coordinates of every pixel centre, row-major."""
     v, u = torch.meshgrid(

@@ -37,7 +37,7 @@ import numpy as np
 from PIL import Image
 
 from cmc.camera_paths import mean_pose
-from cmc.cameras import convert_pose
+from cmc.cameras import convert_pose, pixel_rays
 from cmc.errors import ConfigError
 
 GLB_MAGIC, GLB_VERSION, CHUNK_JSON, CHUNK_BIN = 0x46546C67, 2, 0x4E4F534A, 0x004E4942
@@ -65,8 +65,8 @@ def plane_corners(K: np.ndarray, world_from_cam: np.ndarray, depth: float, width
     reference camera sees it): the image's extent enlarged ``margin`` times, at camera z ``depth``."""
     u0, u1 = (1 - margin) / 2 * width, (1 + margin) / 2 * width
     v0, v1 = (1 - margin) / 2 * height, (1 + margin) / 2 * height
-    pix = np.array([[u0, v0, 1], [u1, v0, 1], [u1, v1, 1], [u0, v1, 1]], dtype=np.float64)
-    cam = depth * pix @ np.linalg.inv(K).T
+    corners = np.array([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], dtype=np.float64)
+    cam = depth * pixel_rays(K, corners)
     return cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
 
 

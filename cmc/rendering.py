@@ -20,6 +20,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from cmc.cameras import pixel_rays
 from cmc.fields import MPIField, TextureField
 from cmc.geometry import (
     apply_homography,
@@ -27,7 +28,6 @@ from cmc.geometry import (
     homographies_ref_from_tgt,
     mean_baseline,
     pixel_centers,
-    pixel_rays,
     plane_depths,
 )
 

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from cmc.cameras import CameraError, Cameras
+from cmc.cameras import CameraError, Cameras, pixel_rays
 from cmc.errors import PoseEstimationError
 from cmc.poses.intake import Matches, Photos
 from cmc.poses.options import SUGGESTION, SparsePoints
@@ -52,7 +52,7 @@ def triangulate_pair(
     rows = []
     for k, uv in enumerate((uv_i, uv_j)):
         P = cam_from_world[k]
-        xn = np.concatenate([uv, np.ones((len(uv), 1))], axis=1) @ np.linalg.inv(cameras.K[(i, j)[k]]).T
+        xn = pixel_rays(cameras.K[(i, j)[k]], uv)
         rows += [xn[:, 0:1] * P[2] - P[0], xn[:, 1:2] * P[2] - P[1]]  # x * (row 3) - (row 1), ... [M, 4]
     A = np.stack(rows, axis=1)  # [M, 4, 4]
     X = np.linalg.svd(A)[2][:, -1]
