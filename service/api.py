@@ -18,7 +18,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.auth import KeyRing
@@ -54,7 +54,7 @@ from service.schemas import (
     WebhookSecret,
 )
 from service.settings import Settings
-from service.storage import Storage, video_keys
+from service.storage import Storage, file_response, video_keys
 from service.store import IdempotencyConflict, SceneRecord, SceneStore
 from service.uploads import check_images, parse_callback_url, parse_cameras, parse_options, receive_upload
 
@@ -334,20 +334,25 @@ async def _create_scene(
     with the scene an earlier upload with the same Idempotency-Key made)."""
     s = svc.settings
     try:
-        upload = await receive_upload(request, s, svc.storage, scene_id)
-        if idempotency_key:
-            existing = await run_in_threadpool(svc.store.find_by_idempotency_key, owner, idempotency_key)
-            if existing is not None:
-                if existing.request_digest != upload.digest:
-                    raise APIError(409, "idempotency_conflict", "this Idempotency-Key was used for a different upload")
-                svc.storage.delete_scene(scene_id)
-                return _created(existing, replayed=True)
-        stored = await asyncio.wrap_future(svc.intake.submit(check_images, upload, s))
-        options = parse_options(upload, s)
-        callback_url = await run_in_threadpool(parse_callback_url, upload, s)
-        cameras = await run_in_threadpool(parse_cameras, upload, stored)
-        if cameras is not None:
-            svc.storage.write_bytes(f"{scene_id}/uploads/cameras.json", json.dumps(cameras).encode())
+        with svc.storage.scratch() as tmp:  # checked here, then stored as {scene_id}/uploads/
+            staged = tmp / "uploads"
+            staged.mkdir()
+            upload = await receive_upload(request, s, staged)
+            if idempotency_key:
+                existing = await run_in_threadpool(svc.store.find_by_idempotency_key, owner, idempotency_key)
+                if existing is not None:
+                    if existing.request_digest != upload.digest:
+                        raise APIError(
+                            409, "idempotency_conflict", "this Idempotency-Key was used for a different upload"
+                        )
+                    return _created(existing, replayed=True)
+            stored = await asyncio.wrap_future(svc.intake.submit(check_images, upload, s))
+            options = parse_options(upload, s)
+            callback_url = await run_in_threadpool(parse_callback_url, upload, s)
+            cameras = await run_in_threadpool(parse_cameras, upload, stored)
+            if cameras is not None:
+                (staged / "cameras.json").write_text(json.dumps(cameras))
+            await run_in_threadpool(svc.storage.publish, f"{scene_id}/uploads", staged)
         rec, created = await run_in_threadpool(
             lambda: svc.store.create(
                 owner,
@@ -443,11 +448,11 @@ def get_cameras(
     from cmc.cameras import CameraFile, camera_file_to_dict, load_camera_file
 
     rec = _scene(svc, scene_id, owner)
-    path = svc.storage.path(f"{scene_id}/scene/cameras.json")
-    if rec.phase == "poses" or not path.exists():
-        message = f"camera poses are not estimated yet ({rec.status})"
-        raise APIError(409, "scene_not_ready", message, {"status": rec.status})
-    cf = load_camera_file(path)
+    with svc.storage.reading(f"{scene_id}/scene/cameras.json") as path:
+        if rec.phase == "poses" or not path.exists():
+            message = f"camera poses are not estimated yet ({rec.status})"
+            raise APIError(409, "scene_not_ready", message, {"status": rec.status})
+        cf = load_camera_file(path)
     # working images are named after our storage names; answer with the client's names
     by_stem = {f.rsplit(".", 1)[0]: name for f, name in zip(rec.upload_files, rec.upload_names, strict=True)}
     names = [by_stem.get(p.rsplit("/", 1)[-1].rsplit(".", 1)[0], p) for p in cf.file_paths]
@@ -564,7 +569,7 @@ async def render_depth(
 )
 def get_mpi(scene_id: SceneId, svc: Svc, owner: Owner) -> Response:
     _ready_scene(svc, scene_id, owner)
-    return FileResponse(svc.storage.path(f"{scene_id}/baked/mpi.json"), media_type="application/json")
+    return Response(svc.storage.read_bytes(f"{scene_id}/baked/mpi.json"), media_type="application/json")
 
 
 @router.get(
@@ -574,13 +579,13 @@ def get_mpi(scene_id: SceneId, svc: Svc, owner: Owner) -> Response:
 )
 def get_mpi_file(scene_id: SceneId, name: str, svc: Svc, owner: Owner) -> Response:
     _ready_scene(svc, scene_id, owner)
-    manifest_path = svc.storage.path(f"{scene_id}/baked/mpi.json")
+    manifest = svc.storage.read_bytes(f"{scene_id}/baked/mpi.json")
     if name == "mpi.json":
-        return FileResponse(manifest_path, media_type="application/json")
-    atlases = {m["atlas"] for m in json.loads(manifest_path.read_text())["mpis"]}
+        return Response(manifest, media_type="application/json")
+    atlases = {m["atlas"] for m in json.loads(manifest)["mpis"]}
     if name not in atlases:  # only names the manifest lists; never a client-built path
         raise not_found("file")
-    return FileResponse(svc.storage.path(f"{scene_id}/baked/{name}"), media_type="image/png")
+    return file_response(svc.storage, f"{scene_id}/baked/{name}", "image/png")
 
 
 @router.get(
@@ -614,12 +619,13 @@ async def export_glb(
 
         def write() -> None:
             names = rec.upload_names if len(rec.upload_names) == count else None  # the photos' names
-            data, _ = build(svc.storage.path(f"{scene_id}/baked"), index, names)
+            with svc.storage.reading(f"{scene_id}/baked") as folder:
+                data, _ = build(folder, index, names)
             svc.storage.write_bytes(key, data)
 
         await svc.render_queue.run(write)
-    headers = {"Content-Disposition": f'attachment; filename="{scene_id}.glb"', "Cache-Control": "private"}
-    return FileResponse(svc.storage.path(key), media_type="model/gltf-binary", headers=headers)
+    headers = {"Cache-Control": "private"}
+    return file_response(svc.storage, key, "model/gltf-binary", f"{scene_id}.glb", headers)
 
 
 VIDEO_RESEND_AFTER_S = 600  # a build whose state was not updated for this long died: send it again
@@ -645,10 +651,10 @@ def get_video(
     _ready_scene(svc, scene_id, owner)
     mp4, state_key = video_keys(scene_id, path)
     if svc.storage.exists(mp4):
-        return FileResponse(svc.storage.path(mp4), media_type="video/mp4", headers={"Cache-Control": "private"})
+        return file_response(svc.storage, mp4, "video/mp4", headers={"Cache-Control": "private"})
     state = json.loads(svc.storage.read_bytes(state_key)) if svc.storage.exists(state_key) else None
     if state is not None and "error" in state:
-        svc.storage.path(state_key).unlink(missing_ok=True)  # the next request tries again
+        svc.storage.delete(state_key)  # the next request tries again
         raise APIError(500, "video_failed", f"rendering the {path} video failed: {state['error']}")
     if state is None or time.time() - state["updated_at"] > VIDEO_RESEND_AFTER_S:
         state = {"progress": 0.0, "updated_at": time.time()}

@@ -24,7 +24,7 @@ from service.middleware import BodyGuard, LocalOnly
 from service.quotas import Quotas, RateLimitHeaders
 from service.renders import BakedCache, RenderQueue
 from service.settings import Settings, load_settings
-from service.storage import LocalStorage
+from service.storage import open_storage
 from service.store import SceneStore
 
 log = logging.getLogger("cmc.api")
@@ -51,7 +51,7 @@ def create_app(
     quotas are counted in Redis (the broker) in celery mode, in memory embedded."""
     settings = settings or load_settings()
     store = SceneStore(settings.resolved_database_url)
-    storage = LocalStorage(settings.resolved_storage_dir)
+    storage = open_storage(settings)
     keys = KeyRing.load(settings.api_keys, settings.api_keys_file)
     runner = None
     if queue is None:

@@ -40,7 +40,7 @@ from celery.signals import worker_ready, worker_shutting_down
 from cmc.images import DECODE_MEMORY
 from service.jobs import TASK_NAMES, CeleryJobQueue
 from service.settings import Settings, load_settings
-from service.storage import LocalStorage
+from service.storage import open_storage
 from service.store import SceneStore
 from worker.pipeline import DELIVER_EVERY_SECONDS, JobContext, deliver, requeue_stale_jobs, run_job, run_video
 from worker.webhooks import deliver as deliver_webhook
@@ -83,7 +83,7 @@ _shutdown = threading.Event()  # set: the job running in this process checkpoint
 def new_context() -> JobContext:
     queue = CeleryJobQueue(settings.broker_url, settings.cpu_queue, settings.gpu_queue, settings.webhook_queue)
     store = SceneStore(settings.resolved_database_url)
-    return JobContext(store, LocalStorage(settings.resolved_storage_dir), queue, settings, shutdown=_shutdown)
+    return JobContext(store, open_storage(settings), queue, settings, shutdown=_shutdown)
 
 
 def context() -> JobContext:

@@ -9,6 +9,9 @@ A job runs in two phases, each a separate task so GPU workers only train and bak
 * ``train`` (GPU queue): trains with checkpoints in ``{id}/checkpoint.pt`` (resumed when a
   previous worker died), bakes ``{id}/baked/``, marks the scene ready.
 
+Phases work on local copies (:meth:`Storage.reading`, :meth:`Storage.writing`: the stored files
+themselves on local storage, downloads and uploads with S3) and publish each result whole.
+
 While a phase runs, a heartbeat thread renews the job's lease, writes progress to the scene
 record and reads the cancel flag every ``heartbeat_seconds``, so DELETE stops a job within
 seconds; the phase's time limit is enforced by the same thread. Work stops cooperatively at
@@ -28,7 +31,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import shutil
 import socket
 import threading
 import time
@@ -203,14 +205,6 @@ def _user_names(rec: SceneRecord, message: str) -> str:
     return message
 
 
-def _fresh_dir(ctx: JobContext, key: str) -> Path:
-    """An empty folder at storage ``key`` (leftovers of an interrupted attempt removed)."""
-    p = ctx.storage.path(key)
-    if p.exists():
-        shutil.rmtree(p)
-    return p
-
-
 # Share of pose estimation done when a stage starts, for the status' progress (SfM's stages report
 # nothing finer): the median stage times on fern's three 12 MP phone photos (bench/poses_fern.md:
 # intake 1.2 s, SIFT 9.4 s, matching 1.7 s, mapping 0.2 s of 12.7 s).
@@ -250,8 +244,6 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     eta = round(REFERENCE_POSES_S + later_s, 1)
     hb.set(status="estimating_poses", progress=0.0, eta_seconds=eta, detail="estimating camera poses")
     hb.flush()
-    scene_dir = _fresh_dir(ctx, f"{rec.id}/scene")
-    uploads = [ctx.storage.path(f"{rec.id}/uploads/{name}") for name in rec.upload_files]
     common: dict[str, Any] = dict(
         long_side=int(rec.options["resolution"]),
         seed=int(rec.options["seed"]),
@@ -262,11 +254,16 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
         on_stage=on_stage,
     )
     try:
-        if rec.has_cameras:
-            cameras = json.loads(ctx.storage.read_bytes(f"{rec.id}/uploads/cameras.json"))
-            result = poses_from_client(uploads, cameras, scene_dir, **common)
-        else:
-            result = estimate_poses(uploads, scene_dir, **common)
+        with (
+            ctx.storage.reading(f"{rec.id}/uploads") as uploaded,
+            ctx.storage.writing(f"{rec.id}/scene", manifest="cameras.json") as scene_dir,
+        ):
+            uploads = [uploaded / name for name in rec.upload_files]
+            if rec.has_cameras:
+                cameras = json.loads((uploaded / "cameras.json").read_bytes())
+                result = poses_from_client(uploads, cameras, scene_dir, **common)
+            else:
+                result = estimate_poses(uploads, scene_dir, **common)
     except PoseEstimationCancelled:
         raise JobStopped(hb.reason or "cancelled") from None
     except PoseEstimationError as e:
@@ -307,6 +304,13 @@ def deliver(ctx: JobContext, scene_id: str | None = None) -> list[str]:
 
 
 def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
+    with ctx.storage.reading(f"{rec.id}/scene") as scene_dir, ctx.storage.scratch() as work:
+        _train_and_bake_in(ctx, rec, hb, scene_dir, work)
+
+
+def _train_and_bake_in(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path, work: Path) -> None:
+    """Train on the scene folder ``scene_dir`` with checkpoints written in ``work`` and each one
+    published to storage, then bake into storage."""
     import torch
 
     from cmc.baking import bake
@@ -317,7 +321,7 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
 
     s, opts = ctx.settings, rec.options
     try:
-        scene = load_scene_folder(ctx.storage.path(f"{rec.id}/scene"))
+        scene = load_scene_folder(scene_dir)
     except SceneError as e:
         raise JobFailure("invalid_images", str(e)) from None
     overrides: dict[str, Any] = {"seed": int(opts["seed"])}
@@ -334,16 +338,17 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     trainer = Trainer(scene, cfg, device)
-    ckpt = ctx.storage.path(f"{rec.id}/checkpoint.pt")
+    ckpt_key, ckpt = f"{rec.id}/checkpoint.pt", work / "checkpoint.pt"
     resumed_from = 0
-    if ckpt.exists():
-        try:
-            trainer.load_checkpoint(ckpt)
-            resumed_from = trainer.step
-        except Exception:  # torn by an old crash or another configuration: start over
-            log.warning("job %s: unusable checkpoint, training from step 0", rec.id, exc_info=True)
-            ckpt.unlink(missing_ok=True)
-            trainer = Trainer(scene, cfg, device)
+    with ctx.storage.reading(ckpt_key) as saved:
+        if saved.exists():
+            try:
+                trainer.load_checkpoint(saved)
+                resumed_from = trainer.step
+            except Exception:  # torn by an old crash or another configuration: start over
+                log.warning("job %s: unusable checkpoint, training from step 0", rec.id, exc_info=True)
+                ctx.storage.delete(ckpt_key)
+                trainer = Trainer(scene, cfg, device)
     stats = {**rec.stats, "train": {"steps": cfg.steps, "device": str(device), "resumed_from_step": resumed_from}}
     hb.set(
         status="training",
@@ -360,6 +365,12 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
         step_s = p.elapsed_s / (p.step - resumed_from)
         hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s + bake_cost * step_s, 1))
 
+    def publish_checkpoint(path: Path) -> None:
+        try:
+            ctx.storage.publish(ckpt_key, path)
+        except Exception:  # only for resuming: the next one may get through
+            log.warning("job %s: could not store the checkpoint of step %d", rec.id, trainer.step, exc_info=True)
+
     try:
         trainer.fit(
             on_progress=on_progress,
@@ -367,6 +378,7 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
             checkpoint_path=ckpt,
             resume=False,
             checkpoint_seconds=s.checkpoint_seconds,
+            on_checkpoint=publish_checkpoint,
         )
     except TrainingCancelled:
         raise JobStopped(hb.reason or "cancelled") from None
@@ -377,15 +389,13 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     hb.flush()
     hb.check()
     t0 = time.perf_counter()
-    tmp = _fresh_dir(ctx, f"{rec.id}/baked-tmp")
-    bake(trainer.model, tmp)
-    final = _fresh_dir(ctx, f"{rec.id}/baked")
-    os.replace(tmp, final)
+    with ctx.storage.writing(f"{rec.id}/baked", manifest="mpi.json") as baked:
+        bake(trainer.model, baked)
     stats["train"].update(seconds_this_attempt=round(train_s, 2), bake_seconds=round(time.perf_counter() - t0, 2))
     ready = dict(progress=1.0, eta_seconds=0.0, detail=None, stats=stats)
     if not ctx.store.advance(rec.id, ctx.worker_id, "done", "ready", **ready):
         raise JobStopped("lease_lost")
-    ckpt.unlink(missing_ok=True)  # the baked MPI is the product; the checkpoint was for resuming
+    ctx.storage.delete(ckpt_key)  # the baked MPI is the product; the checkpoint was for resuming
 
 
 def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
@@ -406,8 +416,10 @@ def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
             ctx.storage.write_bytes(state, json.dumps({"progress": done / total, "updated_at": time.time()}).encode())
 
     try:
-        baked = BakedScene.load(ctx.storage.path(f"{scene_id}/baked"))
-        render_path_video(baked, path, ctx.storage.path(mp4), on_frame=on_frame)  # type: ignore[arg-type]
+        with ctx.storage.reading(f"{scene_id}/baked") as folder:
+            baked = BakedScene.load(folder)
+        with ctx.storage.writing(mp4) as out:
+            render_path_video(baked, path, out, on_frame=on_frame)  # type: ignore[arg-type]
     except Exception as e:
         log.exception("video %s of %s failed", path, scene_id)
         error = {"error": f"{type(e).__name__}: {e}", "updated_at": time.time()}
@@ -415,7 +427,7 @@ def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
         ctx.store.add_event(scene_id, "video.failed", {"path": path, "error": error["error"]})
         kick_webhooks(ctx, scene_id)
         return "failed"
-    ctx.storage.path(state).unlink(missing_ok=True)
+    ctx.storage.delete(state)
     after = ctx.store.get(scene_id)
     if after is None:  # deleted while rendering
         ctx.storage.delete_scene(scene_id)
