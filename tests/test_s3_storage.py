@@ -1,5 +1,5 @@
 """Artifact storage on S3, against a real S3 HTTP endpoint: moto's standalone server (an
-emulator; docker-compose runs MinIO), started by this module as a subprocess.
+emulator; docker-compose runs MinIO), started as a subprocess by the ``s3`` fixture (conftest.py).
 
 The storage contract runs on both backends (LocalStorage and S3Storage); then S3 alone: a writer
 killed with SIGKILL in the middle of a checkpoint's multipart upload leaves the previous
@@ -14,22 +14,19 @@ import io
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
 import time
 import urllib.request
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
-import boto3
 import numpy as np
 import pytest
 import torch
 from fastapi.testclient import TestClient
-from helpers import render_body, synthetic_upload
+from helpers import free_port, new_bucket, render_body, synthetic_upload
 from PIL import Image
 from pydantic import ValidationError
 
@@ -40,44 +37,6 @@ from service.storage import LocalStorage, Storage, StorageError, open_storage
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = "0123456789abcdef0123456789abcdef"
-CREDENTIALS = {"AWS_ACCESS_KEY_ID": "test", "AWS_SECRET_ACCESS_KEY": "test", "AWS_DEFAULT_REGION": "us-east-1"}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@pytest.fixture(scope="module")
-def s3() -> Iterator[str]:
-    """The endpoint URL of a moto S3 server of this module's own (credentials in the environment)."""
-    port = free_port()
-    server = Path(sys.executable).parent / "moto_server"
-    proc = subprocess.Popen(
-        [str(server), "-H", "127.0.0.1", "-p", str(port)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
-    url = f"http://127.0.0.1:{port}"
-    t0 = time.time()
-    while True:
-        try:
-            urllib.request.urlopen(f"{url}/moto-api/", timeout=1)
-            break
-        except OSError:
-            assert proc.poll() is None and time.time() - t0 < 30, "moto_server did not start"
-            time.sleep(0.1)
-    with pytest.MonkeyPatch.context() as mp:
-        for k, v in CREDENTIALS.items():
-            mp.setenv(k, v)
-        yield url
-    proc.terminate()
-    proc.wait(10)
-
-
-def new_bucket(endpoint: str) -> str:
-    name = f"cmc-{uuid.uuid4().hex[:12]}"
-    boto3.client("s3", endpoint_url=endpoint, region_name="us-east-1").create_bucket(Bucket=name)
-    return name
 
 
 @pytest.fixture(params=["local", "s3"])
