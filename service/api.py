@@ -113,6 +113,13 @@ ERRORS_READY: dict[int | str, dict[str, Any]] = {
     409: {"model": ErrorBody, "description": "the scene is not ready yet (code scene_not_ready)"},
 }
 _INT = {"schema": {"type": "integer"}}
+FROM_BUCKET: dict[int | str, dict[str, Any]] = {  # service.storage.file_response
+    307: {
+        "description": "with S3 storage (CMC_STORAGE=s3://...): the file is downloaded from the bucket at the "
+        "presigned URL in Location (valid CMC_S3_URL_SECONDS)",
+        "headers": {"Location": {"schema": {"type": "string"}, "description": "presigned GET URL"}},
+    }
+}
 RATE_LIMIT_HEADERS = {
     "RateLimit-Limit": {
         **_INT,
@@ -574,7 +581,11 @@ def get_mpi(scene_id: SceneId, svc: Svc, owner: Owner) -> Response:
 
 @router.get(
     "/v1/scenes/{scene_id}/mpi/{name}",
-    responses={**ERRORS_READY, 200: {"content": {"image/png": {}, "application/json": {}}, "description": "a file"}},
+    responses={
+        **ERRORS_READY,
+        **FROM_BUCKET,
+        200: {"content": {"image/png": {}, "application/json": {}}, "description": "a file"},
+    },
     summary="A file of the baked MPI: mpi.json or an atlas it names",
 )
 def get_mpi_file(scene_id: SceneId, name: str, svc: Svc, owner: Owner) -> Response:
@@ -592,6 +603,7 @@ def get_mpi_file(scene_id: SceneId, name: str, svc: Svc, owner: Owner) -> Respon
     "/v1/scenes/{scene_id}/export.glb",
     responses={
         **ERRORS_READY,
+        **FROM_BUCKET,
         200: {"content": {"model/gltf-binary": {}}, "description": "glTF 2.0 binary: textured planes and cameras"},
     },
     response_class=Response,
@@ -635,6 +647,7 @@ VIDEO_RESEND_AFTER_S = 600  # a build whose state was not updated for this long 
     "/v1/scenes/{scene_id}/video",
     responses={
         **ERRORS_READY,
+        **FROM_BUCKET,
         200: {"content": {"video/mp4": {}}, "description": "H.264 MP4 of the camera path"},
         202: {"model": VideoBuilding, "description": "being rendered: ask again after Retry-After seconds"},
         500: {"model": ErrorBody, "description": "rendering failed (code video_failed); asking again retries"},
