@@ -24,8 +24,9 @@ import re
 import shutil
 import tempfile
 import uuid
+from abc import ABC, abstractmethod
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -48,52 +49,61 @@ class StorageError(ValueError):
 
 
 def check_key(key: str) -> str:
+    """``key`` if it is a storage key (a scene id, then fixed names); StorageError otherwise."""
     if not _KEY.match(key) or ".." in key:
         raise StorageError(f"invalid storage key {key!r}")
     return key
 
 
-class Storage:
+class Storage(ABC):
     """What the API and the pipeline need from artifact storage (keys: see the module)."""
 
     work_dir: Path  # local working folders (:meth:`scratch`)
 
+    @abstractmethod
     def write_bytes(self, key: str, data: bytes) -> None:
         """Write atomically: readers see the old or the new content, never a part."""
-        raise NotImplementedError
 
+    @abstractmethod
     def read_bytes(self, key: str) -> bytes:
         """The content of a file; StorageError if there is none."""
-        raise NotImplementedError
 
+    @abstractmethod
     def exists(self, key: str) -> bool:
         """Whether a file is stored at ``key``."""
-        raise NotImplementedError
 
+    @abstractmethod
     def list(self, prefix: str) -> list[str]:
         """Keys of the files under the folder ``prefix``, sorted."""
-        raise NotImplementedError
 
+    @abstractmethod
     def delete(self, key: str) -> None:
         """Remove one file (no error if there is none)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def delete_scene(self, scene_id: str) -> None:
         """Remove every artifact of a scene (no error if there are none)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def publish(self, key: str, src: Path, manifest: str | None = None) -> None:
         """Store the local file or folder ``src`` at ``key`` (replacing what was there), taking
         it: ``src`` may be gone afterwards. A folder's ``manifest`` (a file name in it) is
         published after every other file."""
-        raise NotImplementedError
 
-    @contextmanager
-    def reading(self, key: str) -> Iterator[Path]:
+    @abstractmethod
+    def reading(self, key: str) -> AbstractContextManager[Path]:
         """A local path holding the file or folder at ``key`` (a path that does not exist when
         nothing is stored there), valid inside the ``with``; never written to."""
-        raise NotImplementedError
-        yield Path()
+
+    @abstractmethod
+    def locate(self, key: str, media_type: str, filename: str | None = None) -> str | Path:
+        """Where a client gets a stored file: a presigned URL (S3, which the API redirects to;
+        answered with ``media_type`` and, with ``filename``, as an attachment) or the file
+        itself (local storage, which the API sends)."""
+
+    @abstractmethod
+    def check(self) -> None:
+        """Raise if the storage cannot be written (at start, and in the readiness probe)."""
 
     @contextmanager
     def scratch(self) -> Iterator[Path]:
@@ -113,16 +123,6 @@ class Storage:
             path = tmp / key.rsplit("/", 1)[-1]
             yield path
             self.publish(key, path, manifest)
-
-    def locate(self, key: str, media_type: str, filename: str | None = None) -> str | Path:
-        """Where a client gets a stored file: a presigned URL (S3, which the API redirects to;
-        answered with ``media_type`` and, with ``filename``, as an attachment) or the file
-        itself (local storage, which the API sends)."""
-        raise NotImplementedError
-
-    def check(self) -> None:
-        """Raise if the storage cannot be written (readiness probe)."""
-        raise NotImplementedError
 
 
 class LocalStorage(Storage):
