@@ -23,6 +23,7 @@ import os
 import re
 import shutil
 import tempfile
+import time
 import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
@@ -115,6 +116,17 @@ class Storage(ABC):
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
 
+    def sweep_scratch(self, older_than_s: float) -> list[Path]:
+        """Remove the working folders untouched for ``older_than_s`` (left by a process that
+        was killed: longer than any job may run, so none in use). Returns those removed."""
+        if not self.work_dir.is_dir():
+            return []
+        cutoff = time.time() - older_than_s
+        old = [p for p in self.work_dir.iterdir() if p.is_dir() and p.stat().st_mtime < cutoff]
+        for p in old:
+            shutil.rmtree(p, ignore_errors=True)
+        return old
+
     @contextmanager
     def writing(self, key: str, manifest: str | None = None) -> Iterator[Path]:
         """A local path (parent folder existing, nothing there yet) to write a file or folder
@@ -201,14 +213,19 @@ class LocalStorage(Storage):
 
 def open_storage(settings: Settings) -> Storage:
     """The storage the settings name: an S3 bucket (``CMC_STORAGE=s3://bucket/prefix``, checked
-    to be reachable: StorageError otherwise) or the local folder ``resolved_storage_dir``."""
+    to be reachable: StorageError otherwise) or the local folder ``resolved_storage_dir``.
+    Working folders older than the longest job are removed."""
+    storage: Storage
     if settings.storage:
         from service.s3storage import S3Storage
 
         storage = S3Storage.from_settings(settings)
         storage.check()
-        return storage
-    return LocalStorage(settings.resolved_storage_dir)
+    else:
+        storage = LocalStorage(settings.resolved_storage_dir)
+    # an hour past the longest phase: past a video's hour too (worker.celery_app)
+    storage.sweep_scratch(max(settings.poses_time_limit, settings.train_time_limit) + 3600)
+    return storage
 
 
 def file_response(

@@ -108,7 +108,10 @@ def test_storage_contract(storage: Storage, tmp_path: Path) -> None:
     storage.check()
     with storage.scratch() as a, storage.scratch() as b:
         assert a != b and a.is_dir() and list(a.iterdir()) == []
-    assert not a.exists()
+        (a / "checkpoint.pt").write_bytes(b"left by a killed worker")
+        os.utime(a, (time.time() - 7200, time.time() - 7200))
+        assert storage.sweep_scratch(3600) == [a] and b.is_dir()
+    assert not a.exists() and not b.exists()
 
 
 def test_folder_manifest_is_published_last(storage: Storage, tmp_path: Path) -> None:
