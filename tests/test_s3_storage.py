@@ -145,16 +145,22 @@ def test_folder_manifest_is_published_last(storage: Storage, tmp_path: Path) -> 
                 continue  # between the old manifest and the new one
             seen.append((version, files))
 
+    def wait_until(cond) -> None:
+        t0 = time.time()
+        while not cond():
+            assert time.time() - t0 < 30, "the reader saw nothing"
+            time.sleep(0.01)
+
     t = threading.Thread(target=reader)
     t.start()
     try:
-        time.sleep(0.05)
+        wait_until(lambda: seen)
         storage.publish(key, folder(2), manifest="mpi.json")
-        time.sleep(0.05)
+        wait_until(lambda: seen[-1][0] == 2)
     finally:
         done.set()
         t.join()
-    assert seen and json.loads(storage.read_bytes(f"{key}/mpi.json")) == {"version": 2}
+    assert json.loads(storage.read_bytes(f"{key}/mpi.json")) == {"version": 2}
     for version, files in seen:
         if version == 2:
             assert files == [bytes([2])] * len(names), "the new manifest was visible before its files"
