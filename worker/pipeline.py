@@ -228,7 +228,7 @@ def _training_prior_s(options: dict[str, Any]) -> float:
 
 def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     from cmc.cameras import CameraError
-    from cmc.datasets import SceneError
+    from cmc.datasets import CAMERAS_FILE, SceneError
     from cmc.eta import REFERENCE_POSES_S
     from cmc.poses import PoseEstimationCancelled, PoseEstimationError, estimate_poses, poses_from_client
 
@@ -256,7 +256,7 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     try:
         with (
             ctx.storage.reading(f"{rec.id}/uploads") as uploaded,
-            ctx.storage.writing(f"{rec.id}/scene", manifest="cameras.json") as scene_dir,
+            ctx.storage.writing(f"{rec.id}/scene", manifest=CAMERAS_FILE) as scene_dir,
         ):
             uploads = [uploaded / name for name in rec.upload_files]
             if rec.has_cameras:
@@ -313,7 +313,7 @@ def _train_and_bake_in(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_
     published to storage, then bake into storage."""
     import torch
 
-    from cmc.baking import bake
+    from cmc.baking import MANIFEST, bake
     from cmc.config import preset_config
     from cmc.datasets import SceneError, load_scene_folder
     from cmc.eta import REFERENCE_STEP_S, bake_steps
@@ -389,7 +389,7 @@ def _train_and_bake_in(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_
     hb.flush()
     hb.check()
     t0 = time.perf_counter()
-    with ctx.storage.writing(f"{rec.id}/baked", manifest="mpi.json") as baked:
+    with ctx.storage.writing(f"{rec.id}/baked", manifest=MANIFEST) as baked:
         bake(trainer.model, baked)
     stats["train"].update(seconds_this_attempt=round(train_s, 2), bake_seconds=round(time.perf_counter() - t0, 2))
     ready = dict(progress=1.0, eta_seconds=0.0, detail=None, stats=stats)
