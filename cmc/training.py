@@ -221,6 +221,7 @@ class Trainer:
         checkpoint_path: str | Path | None = None,
         resume: bool = True,
         checkpoint_seconds: float | None = 60.0,
+        on_checkpoint: Callable[[Path], None] | None = None,
     ) -> TrainResult:
         """Train to ``cfg.steps``.
 
@@ -229,24 +230,32 @@ class Trainer:
         or more after the last checkpoint (or the start), at the end, and before raising
         TrainingCancelled. The time bound is what a process killed without warning (a container
         stopped past its grace period, a lost machine) loses; it is not part of the
-        configuration, so changing it keeps checkpoints usable.
+        configuration, so changing it keeps checkpoints usable. ``on_checkpoint(path)`` is
+        called after each write (to copy it elsewhere; it may move the file away).
         """
         if checkpoint_path is not None and resume and Path(checkpoint_path).exists():
             self.load_checkpoint(checkpoint_path)
         t0 = t_last = t_saved = time.perf_counter()
         eta = TrainingETA.for_config(self.cfg, len(self.scene))
         history = []
+
+        def save() -> None:
+            assert checkpoint_path is not None
+            self.save_checkpoint(checkpoint_path)
+            if on_checkpoint is not None:
+                on_checkpoint(Path(checkpoint_path))
+
         while self.step < self.cfg.steps:
             if should_stop is not None and should_stop():
                 if checkpoint_path is not None:
-                    self.save_checkpoint(checkpoint_path)
+                    save()
                 raise TrainingCancelled(f"cancelled at step {self.step}")
             losses = self.train_step()
             history.append(losses)
             now = time.perf_counter()
             due = checkpoint_seconds is not None and now - t_saved >= checkpoint_seconds
             if checkpoint_path is not None and (self.step % self.cfg.checkpoint_every == 0 or due):
-                self.save_checkpoint(checkpoint_path)
+                save()
                 t_saved = now
             eta.record(self.step - 1, now - t_last)
             t_last = now
@@ -255,7 +264,7 @@ class Trainer:
                 assert remaining is not None  # a step was just measured
                 on_progress(Progress(self.step, self.cfg.steps, losses, now - t0, remaining))
         if checkpoint_path is not None:
-            self.save_checkpoint(checkpoint_path)
+            save()
         seconds = time.perf_counter() - t0
         return TrainResult(self.model, self.step, seconds if math.isfinite(seconds) else 0.0, history)
 

@@ -26,7 +26,7 @@ from service.middleware import BodyGuard, LocalOnly
 from service.quotas import Quotas, RateLimitHeaders
 from service.renders import BakedCache, RenderQueue
 from service.settings import Settings, load_settings
-from service.storage import LocalStorage
+from service.storage import Storage, open_storage
 from service.store import SceneStore
 
 log = logging.getLogger("cmc.api")
@@ -45,7 +45,7 @@ Cameras use the transforms.json shape with a `convention` field (`opengl`, ARKit
 """
 
 
-def installed_runner() -> Callable[[SceneStore, LocalStorage, Settings], Any]:
+def installed_runner() -> Callable[[SceneStore, Storage, Settings], Any]:
     """The in-process job runner worker/ registers under the ``cmc.job_runners`` entry point
     (pyproject.toml), found by name so that the API does not import the workers."""
     found = list(entry_points(group="cmc.job_runners", name="embedded"))
@@ -58,7 +58,7 @@ def create_app(
     settings: Settings | None = None,
     queue: JobQueue | None = None,
     limiter: Limiter | None = None,
-    embedded_runner: Callable[[SceneStore, LocalStorage, Settings], Any] | None = None,
+    embedded_runner: Callable[[SceneStore, Storage, Settings], Any] | None = None,
 ) -> FastAPI:
     """Build the app. Without ``queue``: Celery (``settings.mode == 'celery'``) or the embedded
     runner, ``embedded_runner(store, storage, settings)`` (``cmc serve`` passes
@@ -67,7 +67,7 @@ def create_app(
     broker) in celery mode, in memory embedded."""
     settings = settings or load_settings()
     store = SceneStore(settings.resolved_database_url, migrate=settings.migrate_on_start)
-    storage = LocalStorage(settings.resolved_storage_dir)
+    storage = open_storage(settings)
     keys = KeyRing.load(settings.api_keys, settings.api_keys_file)
     runner = None
     if queue is None:

@@ -12,6 +12,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+CAMERAS_UPLOAD = "cameras.json"  # the client's cameras file among the uploads (SceneLayout.cameras_upload)
+
 
 @dataclass(frozen=True)
 class SceneLayout:
@@ -19,14 +21,19 @@ class SceneLayout:
 
     scene_id: str
 
+    @property
+    def uploads(self) -> str:
+        """The folder of the uploads (the API publishes it whole, the worker reads it whole)."""
+        return f"{self.scene_id}/uploads"
+
     def upload(self, name: str) -> str:
         """An uploaded file under our storage name (``00.jpg``, ``cameras.json``, ...)."""
-        return f"{self.scene_id}/uploads/{name}"
+        return f"{self.uploads}/{name}"
 
     @property
     def cameras_upload(self) -> str:
         """The client's cameras file, its frames renamed to our storage names."""
-        return self.upload("cameras.json")
+        return self.upload(CAMERAS_UPLOAD)
 
     @property
     def scene_dir(self) -> str:
@@ -45,11 +52,6 @@ class SceneLayout:
     def baked(self, name: str | None = None) -> str:
         """The baked folder, or the file ``name`` in it (``mpi.json``, an atlas)."""
         return f"{self.scene_id}/baked" + (f"/{name}" if name else "")
-
-    @property
-    def baked_tmp(self) -> str:
-        """Where baking writes before the folder replaces ``baked`` in one rename."""
-        return f"{self.scene_id}/baked-tmp"
 
     @property
     def manifest(self) -> str:

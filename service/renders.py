@@ -69,7 +69,8 @@ class BakedCache:
             with self._lock:
                 if scene_id in self._scenes:
                     return self._scenes[scene_id]
-            baked = BakedScene.load(self.storage.path(SceneLayout(scene_id).baked()))
+            with self.storage.reading(SceneLayout(scene_id).baked()) as folder:
+                baked = BakedScene.load(folder)
             with self._lock:
                 self._scenes[scene_id] = baked
                 while len(self._scenes) > 1 and self.nbytes > self.capacity_bytes:

@@ -7,6 +7,7 @@ capitals, e.g. ``CMC_DATABASE_URL``; ``.env.example`` lists the ones deployments
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Literal
 
@@ -30,6 +31,20 @@ class Settings(BaseSettings):
         "deployment turns this off and runs the compose service 'migrate' once instead",
     )
     storage_dir: Path | None = Field(None, description="artifact storage root; default data_dir/storage")
+    storage: str = Field(
+        "",
+        description="s3://bucket/prefix: artifacts in an S3-compatible bucket (credentials from the usual AWS_* "
+        "variables), working copies in data_dir/work; empty: the local folder storage_dir",
+    )
+    s3_endpoint_url: str = Field("", description="S3 API endpoint (MinIO, other clouds); empty: AWS's")
+    s3_public_endpoint_url: str = Field(
+        "", description="endpoint in the presigned download URLs clients get; empty: s3_endpoint_url"
+    )
+    s3_region: str = Field("", description="bucket region; empty: from AWS_REGION / AWS_DEFAULT_REGION or us-east-1")
+    s3_url_seconds: int = Field(3600, ge=60, le=7 * 24 * 3600, description="lifetime of presigned download URLs")
+    s3_multipart_bytes: int = Field(
+        16 * MB, ge=5 * MB, description="files from this size up are uploaded in parts of this size (checkpoints)"
+    )
     broker_url: str = Field("", description="Celery broker (redis://...); empty: no Celery (embedded runner)")
     cpu_queue: str = Field("cpu", description="Celery queue of pose estimation")
     gpu_queue: str = Field("gpu", description="Celery queue of training and baking")
@@ -138,6 +153,8 @@ class Settings(BaseSettings):
             raise ValueError(f"min_images ({self.min_images}) > max_images ({self.max_images})")
         if self.mode == "celery" and not self.broker_url:
             raise ValueError("CMC_MODE=celery needs CMC_BROKER_URL")
+        if self.storage and not re.fullmatch(r"s3://[a-z0-9][a-z0-9.-]{1,61}[a-z0-9](/[^/]+)*/?", self.storage):
+            raise ValueError(f"CMC_STORAGE must be empty or s3://bucket[/prefix], got {self.storage!r}")
         return self
 
     @property
@@ -147,6 +164,11 @@ class Settings(BaseSettings):
     @property
     def resolved_storage_dir(self) -> Path:
         return (self.storage_dir or self.data_dir / "storage").resolve()
+
+    @property
+    def work_dir(self) -> Path:
+        """Local working copies of artifacts kept in S3 (per job, removed after it)."""
+        return (self.data_dir / "work").resolve()
 
     @property
     def max_request_bytes(self) -> int:

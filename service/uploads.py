@@ -3,8 +3,9 @@ the checks of what arrived (content-sniffed images, the cameras file, the option
 
 Parts of ``POST /v1/scenes`` (multipart/form-data):
 
-* ``images`` (repeated): the photos. Written straight to storage under our own names
-  (``uploads/00.jpg``...); the client's file name is kept as data only.
+* ``images`` (repeated): the photos. Written straight to a local folder under our own names
+  (``00.jpg``...; the API then publishes it as ``{id}/uploads/``); the client's file name is
+  kept as data only.
 * ``cameras`` (optional): a transforms.json-style cameras file (see cmc.cameras).
 * ``options`` (optional): JSON, :class:`service.schemas.SceneOptions`.
 * ``callback_url`` (optional): where the scene's webhooks go (:mod:`service.webhooks`).
@@ -29,10 +30,9 @@ from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
 from service.errors import APIError, ErrorCode
-from service.layout import ClientNames, SceneLayout
+from service.layout import ClientNames
 from service.schemas import SceneOptions
 from service.settings import Settings
-from service.storage import Storage
 
 _EXTENSIONS = {"JPEG": ".jpg", "PNG": ".png", "WEBP": ".webp", "HEIF": ".heic"}
 
@@ -46,7 +46,7 @@ class ImagePart:
 
 @dataclass
 class Upload:
-    """What a scene upload carried, written under ``{scene_id}/uploads/``."""
+    """What a scene upload carried (the photos written to the reader's folder)."""
 
     images: list[ImagePart] = field(default_factory=list)
     cameras: bytes | None = None
@@ -58,8 +58,8 @@ class Upload:
 class _Reader:
     """Callbacks for python-multipart's streaming parser, with the limits."""
 
-    def __init__(self, settings: Settings, storage: Storage, scene_id: str):
-        self.s, self.storage, self.scene_id = settings, storage, scene_id
+    def __init__(self, settings: Settings, folder: Path):
+        self.s, self.folder = settings, folder
         self.upload = Upload()
         self.sha = hashlib.sha256()
         self._header_field = b""
@@ -98,8 +98,7 @@ class _Reader:
                 raise APIError(422, ErrorCode.too_many_images, f"send at most {self.s.max_images} images")
             filename = params.get(b"filename", b"").decode("utf-8", "replace")
             filename = Path(filename.replace("\\", "/")).name or f"image{len(images) + 1}"
-            key = SceneLayout(self.scene_id).upload(f"{len(images):02d}.upload")
-            part = ImagePart(filename[:200], self.storage.path(key))
+            part = ImagePart(filename[:200], self.folder / f"{len(images):02d}.upload")
             images.append(part)
             self._file = part.path.open("wb")
         elif self._name in ("cameras", "options", "callback_url"):
@@ -135,8 +134,8 @@ class _Reader:
             self._file.close()
 
 
-async def receive_upload(request: Request, settings: Settings, storage: Storage, scene_id: str) -> Upload:
-    """Stream the multipart body into storage, enforcing the byte and count limits."""
+async def receive_upload(request: Request, settings: Settings, folder: Path) -> Upload:
+    """Stream the multipart body, the photos into ``folder``, enforcing the byte and count limits."""
     ctype, params = parse_options_header(request.headers.get("content-type", ""))
     if ctype != b"multipart/form-data" or b"boundary" not in params:
         raise APIError(415, ErrorCode.unsupported_media_type, "send the photos as multipart/form-data")
@@ -144,7 +143,7 @@ async def receive_upload(request: Request, settings: Settings, storage: Storage,
     length = request.headers.get("content-length")
     if length is not None and length.isdigit() and int(length) > limit:
         raise APIError(413, ErrorCode.payload_too_large, f"the request is over {limit} bytes")
-    reader = _Reader(settings, storage, scene_id)
+    reader = _Reader(settings, folder)
     parser = MultipartParser(params[b"boundary"], reader.callbacks())
     total = 0
     try:

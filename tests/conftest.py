@@ -4,11 +4,16 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
+import time
+import urllib.request
 import uuid
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
-from helpers import CHROMIUM_ARGS, REDIS_URL, browser_unavailable
+from helpers import CHROMIUM_ARGS, REDIS_URL, S3_CREDENTIALS, browser_unavailable, free_port
 
 
 @pytest.fixture
@@ -49,3 +54,32 @@ def browser():
         b = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS, headless=True)
         yield b
         b.close()
+
+
+@pytest.fixture(scope="module")
+def s3() -> Iterator[str]:
+    """The endpoint URL of an S3 server of this module's own: moto's standalone server (an
+    emulator, ``moto[server]`` of the dev extras) as a subprocess; its credentials
+    (``S3_CREDENTIALS``) are in the environment meanwhile."""
+    port = free_port()
+    server = Path(sys.executable).parent / "moto_server"
+    proc = subprocess.Popen(
+        [str(server), "-H", "127.0.0.1", "-p", str(port)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    url = f"http://127.0.0.1:{port}"
+    try:
+        t0 = time.time()
+        while True:
+            try:
+                urllib.request.urlopen(f"{url}/moto-api/", timeout=1).close()
+                break
+            except OSError:
+                assert proc.poll() is None and time.time() - t0 < 30, "moto_server did not start"
+                time.sleep(0.1)
+        with pytest.MonkeyPatch.context() as mp:
+            for k, v in S3_CREDENTIALS.items():
+                mp.setenv(k, v)
+            yield url
+    finally:
+        proc.terminate()
+        proc.wait(10)

@@ -7,6 +7,8 @@ import io
 import json
 import math
 import os
+import socket
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +18,7 @@ from PIL import Image
 from cmc.cameras import CameraFile, Cameras, camera_file_to_dict
 from cmc.datasets import Scene, synthetic_cameras, synthetic_scene
 
+S3_CREDENTIALS = {"AWS_ACCESS_KEY_ID": "test", "AWS_SECRET_ACCESS_KEY": "test", "AWS_DEFAULT_REGION": "us-east-1"}
 SHARED_DIR = Path(os.environ.get("CMC_SHARED_DIR") or Path(__file__).resolve().parents[1].parent / "shared")
 REDIS_URL = os.environ.get("CMC_TEST_REDIS", "redis://127.0.0.1:6379/14")  # the real Redis of the tests
 
@@ -83,3 +86,18 @@ def browser_unavailable(message: str):
     if os.environ.get("CI", "").lower() not in ("", "0", "false"):
         pytest.fail(f"{message} (CI is set: the browser tests must run)")
     pytest.skip(message)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def new_bucket(endpoint: str) -> str:
+    """A fresh bucket at the S3 endpoint (the ``s3`` fixture's moto server)."""
+    import boto3
+
+    name = f"cmc-{uuid.uuid4().hex[:12]}"
+    boto3.client("s3", endpoint_url=endpoint, region_name="us-east-1").create_bucket(Bucket=name)
+    return name

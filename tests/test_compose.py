@@ -4,7 +4,8 @@ Parses the compose file (PyYAML, with compose's ``${...}`` interpolation done he
 Dockerfiles and .env.example, and checks them against the code they start: every CMC_* variable
 is a field of service.settings.Settings, the commands name importable entry points, the Celery
 routes send each task to a queue that some worker consumes, the API and the workers share the
-artifact volume, the database and the broker, and the images install what pyproject.toml pins.
+artifact bucket (MinIO), the database and the broker but no volume, and the images install what
+pyproject.toml pins.
 When the ``docker compose`` plugin is installed, ``docker compose config`` validates the file too.
 """
 
@@ -35,7 +36,11 @@ COMPOSE = ROOT / "docker-compose.yml"
 ENV_EXAMPLE = ROOT / ".env.example"
 DOCKERFILES = {"cpu": ROOT / "docker" / "Dockerfile", "gpu": ROOT / "docker" / "Dockerfile.gpu"}
 APP_SERVICES = ("api", "worker-cpu", "worker-gpu", "worker-webhooks")
-SECRETS = {"CMC_API_KEYS": "test-key-1,test-key-2", "POSTGRES_PASSWORD": "pw0123456789"}
+SECRETS = {
+    "CMC_API_KEYS": "test-key-1,test-key-2",
+    "POSTGRES_PASSWORD": "pw0123456789",
+    "MINIO_ROOT_PASSWORD": "s3pw0123",
+}
 
 
 # -- compose's variable interpolation ----------------------------------------------------------
@@ -205,7 +210,8 @@ def torch_pin() -> str:
 
 
 def test_services_exist(services: dict[str, Any]) -> None:
-    assert {"redis", "db", "api", "worker-cpu", "worker-gpu", "worker-webhooks"} <= set(services)
+    one_shots = {"migrate", "minio-init"}
+    assert {"redis", "db", "minio", "api", "worker-cpu", "worker-gpu", "worker-webhooks"} | one_shots <= set(services)
 
 
 def test_every_variable_compose_reads_is_in_env_example_and_back() -> None:
@@ -256,6 +262,7 @@ def test_settings_validate(monkeypatch: pytest.MonkeyPatch, name: str, env_file:
     s = load_settings()
     assert s.mode == "celery", "jobs would run inside the API process"
     assert s.broker_url and s.database_url
+    assert s.storage.startswith("s3://") and s.s3_endpoint_url, "artifacts would need a shared volume"
 
 
 def test_api_command_names_a_factory(services: dict[str, Any]) -> None:
@@ -384,27 +391,47 @@ def test_worker_healthcheck_pings_its_own_node(services: dict[str, Any], name: s
     assert f"{node}@$$HOSTNAME" in COMPOSE.read_text()
 
 
-def test_artifact_volume_shared(compose: dict[str, Any], services: dict[str, Any]) -> None:
-    mounts = {}
-    for name in APP_SERVICES:
-        named = []
-        for v in services[name].get("volumes", []):
-            source, target = v.split(":")[:2] if isinstance(v, str) else (v["source"], v["target"])
-            if source in (compose.get("volumes") or {}):
-                named.append((source, target))
-        assert len(named) == 1, f"{name}: expected one named volume, got {named}"
-        mounts[name] = named[0]
-    assert len(set(mounts.values())) == 1, f"not the same volume at the same path: {mounts}"
-    source, target = next(iter(mounts.values()))
+def test_artifacts_in_the_bucket_not_a_shared_volume(compose: dict[str, Any], services: dict[str, Any]) -> None:
+    """The API and the workers store artifacts in MinIO's bucket, which minio-init makes before
+    they start; none of them mounts a named volume (they may run on different hosts); each has a
+    writable /data of its own (an anonymous volume: the root filesystem is read-only)."""
+    from service.s3storage import S3Storage
+
+    minio = services["minio"]
+    minio_env = environment(minio)
+    assert command(minio)[:2] == ["server", "/data"] and any(v.endswith(":/data") for v in minio["volumes"])
+    named = compose.get("volumes") or {}
+    assert any(v.split(":")[0] in named for v in minio["volumes"]), "MinIO's data would be lost with its container"
+    init = services["minio-init"]
+    assert init["depends_on"]["minio"]["condition"] == "service_healthy"
+    init_script = " ".join(command(init))
+    storages = set()
     for name in APP_SERVICES:
         env = environment(services[name])
-        for key in ("CMC_STORAGE_DIR", "CMC_DATA_DIR"):
-            assert PurePosixPath(env[key]).is_relative_to(target), f"{name}: {key}={env[key]} is outside {target}"
-    # a new named volume takes the owner of the image's folder: the images must make it theirs
+        storages.add((env["CMC_STORAGE"], env["CMC_S3_ENDPOINT_URL"], env["CMC_S3_PUBLIC_ENDPOINT_URL"]))
+        assert env["AWS_ACCESS_KEY_ID"] == minio_env["MINIO_ROOT_USER"]
+        assert env["AWS_SECRET_ACCESS_KEY"] == minio_env["MINIO_ROOT_PASSWORD"] == SECRETS["MINIO_ROOT_PASSWORD"]
+        deps = services[name]["depends_on"]
+        assert deps["minio-init"]["condition"] == "service_completed_successfully", f"{name} may start bucketless"
+        volumes = services[name]["volumes"]
+        mounts = [v if isinstance(v, str) else f"{v.get('source', '')}:{v['target']}" for v in volumes]
+        assert not [m for m in mounts if m.split(":")[0] in named], f"{name} mounts a named volume: {mounts}"
+        assert env["CMC_DATA_DIR"] in mounts, f"{name}: {env['CMC_DATA_DIR']} is not writable"
+    assert len(storages) == 1, f"the services disagree on the storage: {storages}"
+    storage, endpoint, public = storages.pop()
+    url = urlsplit(endpoint)
+    assert (url.hostname, url.port) == ("minio", 9000)
+    s3 = S3Storage.from_settings(Settings(storage=storage, s3_endpoint_url=endpoint))
+    assert f"mc mb --ignore-existing cmc/{s3.bucket}" in init_script
+    assert f"mc alias set cmc {endpoint} {minio_env['MINIO_ROOT_USER']}" in init_script
+    # presigned URLs point at MinIO's published port
+    published = [p.rsplit(":", 2) for p in minio["ports"]]
+    assert [(int(host_port), int(port)) for _, host_port, port in published] == [(urlsplit(public).port, 9000)]
+    # a new volume takes the owner of the image's folder: the images must make /data theirs
     for path in DOCKERFILES.values():
         runs = " ".join(rest for ins, rest in dockerfile_instructions(path) if ins == "RUN")
-        assert re.search(rf"mkdir -p {re.escape(target)}\b", runs), f"{path.name} does not create {target}"
-        assert re.search(rf"chown \S+ {re.escape(target)}\b", runs), f"{path.name} does not chown {target}"
+        assert re.search(r"mkdir -p /data\b", runs), f"{path.name} does not create /data"
+        assert re.search(r"chown \S+ /data\b", runs), f"{path.name} does not chown /data"
 
 
 def test_api_and_workers_share_database_and_broker(services: dict[str, Any]) -> None:
@@ -435,7 +462,7 @@ def test_database_and_redis(services: dict[str, Any], compose: dict[str, Any]) -
 
 
 def test_healthchecks_and_dependencies(services: dict[str, Any]) -> None:
-    for name in ("redis", "db", *APP_SERVICES):
+    for name in ("redis", "db", "minio", *APP_SERVICES):
         hc = services[name].get("healthcheck")
         assert hc and not hc.get("disable") and hc["test"] not in (["NONE"], "NONE"), f"{name}: no health check"
     assert "pg_isready" in healthcheck_shell(services["db"])
@@ -446,8 +473,11 @@ def test_healthchecks_and_dependencies(services: dict[str, Any]) -> None:
         assert isinstance(deps, dict), f"{name}: depends_on without conditions"
         for dep in ("db", "redis"):
             assert deps[dep]["condition"] == "service_healthy", f"{name} does not wait for {dep}"
+        # the one-shot steps, run to completion first: the schema migration and the bucket
         assert deps["migrate"]["condition"] == "service_completed_successfully", f"{name} may see an old schema"
-        assert all(d["condition"] == "service_healthy" for dep, d in deps.items() if dep != "migrate")
+        assert deps["minio-init"]["condition"] == "service_completed_successfully", f"{name} may start bucketless"
+        one_shots = ("migrate", "minio-init")
+        assert all(d["condition"] == "service_healthy" for dep, d in deps.items() if dep not in one_shots)
 
 
 def test_migrations_run_once_before_the_api_and_workers(services: dict[str, Any]) -> None:

@@ -13,6 +13,7 @@ def test_every_key_is_a_valid_storage_key_of_the_scene(tmp_path) -> None:
     sid = uuid.uuid4().hex
     layout, storage = SceneLayout(sid), LocalStorage(tmp_path)
     keys = [
+        layout.uploads,
         layout.upload("00.jpg"),
         layout.cameras_upload,
         layout.scene_dir,
@@ -20,7 +21,6 @@ def test_every_key_is_a_valid_storage_key_of_the_scene(tmp_path) -> None:
         layout.checkpoint,
         layout.baked(),
         layout.baked("mpi_00.png"),
-        layout.baked_tmp,
         layout.manifest,
         layout.export_glb(2),
         layout.video("orbit"),

@@ -5,7 +5,8 @@ the real PostgreSQL at 127.0.0.1:5432 as the scene store.
 1. Upload a tiny synthetic scene, poll to ``ready``, render a novel camera and its depth and
    compare them with the scene's exact ground truth.
 2. Kill the GPU worker (SIGKILL, its whole process group) mid-training; a new GPU worker resumes
-   the job from its last checkpoint, not from zero.
+   the job from its last checkpoint, not from zero; also with the artifacts in an S3 bucket
+   (moto_server) and a data folder of each process's own (no shared volume).
 
 Each test uses its own queue names and PostgreSQL database; Redis database 14 is the tests' own
 and is emptied after each test (queues, bindings, the killed worker's unacknowledged message).
@@ -27,7 +28,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from helpers import render_body, synthetic_upload
+from helpers import S3_CREDENTIALS, new_bucket, render_body, synthetic_upload
 from PIL import Image
 
 from cmc.datasets import DEFAULT_LAYERS, render_layers
@@ -58,6 +59,8 @@ class Deployment:
 
     def __init__(self, tmp: Path, database_url: str):
         run = uuid.uuid4().hex[:8]
+        self.tmp = tmp
+        self.own_data_dirs = False  # True: CMC_DATA_DIR is tmp/<process name>, shared by none
         self.port = _free_port()
         self.env = {
             **os.environ,
@@ -83,7 +86,8 @@ class Deployment:
 
     def start(self, name: str, args: list[str]) -> subprocess.Popen:
         log = open(self.logs / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
-        p = subprocess.Popen(args, env=self.env, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, start_new_session=True)
+        env = {**self.env, "CMC_DATA_DIR": str(self.tmp / name)} if self.own_data_dirs else self.env
+        p = subprocess.Popen(args, env=env, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, start_new_session=True)
         self.procs[name] = p
         return p
 
@@ -226,13 +230,30 @@ def test_upload_poll_render_and_depth_across_processes(deployment: Deployment) -
     assert "Task cmc.train[" in d.log("gpu") and "Task cmc.poses[" not in d.log("gpu")
 
 
-def test_killed_worker_is_resumed_from_its_checkpoint(deployment: Deployment) -> None:
+@pytest.mark.parametrize("storage", ["local", "s3"])
+def test_killed_worker_is_resumed_from_its_checkpoint(deployment: Deployment, storage: str, request) -> None:
+    from service.storage import LocalStorage
+
     d = deployment
+    if storage == "s3":
+        from service.s3storage import S3Storage
+
+        endpoint = request.getfixturevalue("s3")
+        bucket = new_bucket(endpoint)
+        del d.env["CMC_STORAGE_DIR"]
+        d.env.update(CMC_STORAGE=f"s3://{bucket}/it", CMC_S3_ENDPOINT_URL=endpoint, **S3_CREDENTIALS)
+        d.own_data_dirs = True  # the processes share the bucket, no folder
+        store = S3Storage(bucket, "it", d.tmp / "test-work", endpoint)
+    else:
+        store = LocalStorage(d.env["CMC_STORAGE_DIR"])
+
+    def stored(sid: str) -> bool:
+        return store.exists(f"{sid}/checkpoint.pt")
+
     d.start_all()
     parts, _, _ = synthetic_upload(steps=40)
     sid = httpx.post(f"{d.url}/v1/scenes", files=parts, headers=d.headers, timeout=30).json()["id"]
-    ckpt = Path(d.env["CMC_STORAGE_DIR"]) / sid / "checkpoint.pt"
-    d.wait(sid, lambda b: b["status"] == "training" and b["progress"] >= 0.3 and ckpt.exists(), timeout=300)
+    d.wait(sid, lambda b: b["status"] == "training" and b["progress"] >= 0.3 and stored(sid), timeout=300)
     d.kill("gpu")
     killed_at = d.status(sid)["progress"]
     time.sleep(1)
@@ -249,6 +270,11 @@ def test_killed_worker_is_resumed_from_its_checkpoint(deployment: Deployment) ->
     resumed = stats["train"]["resumed_from_step"]
     assert resumed >= 5 and resumed <= killed_at * 40 + 1e-6, (resumed, killed_at)
     assert "re-queued" in d.log("gpu2") or "re-queued" in d.log("cpu")
+    if storage == "s3":  # everything went through the bucket: no process kept artifacts of its own
+        assert store.exists(f"{sid}/baked/mpi.json") and not stored(sid)
+        for name in ("api", "cpu", "gpu2"):
+            assert not (d.tmp / name / "storage").exists()
+            assert [p for p in (d.tmp / name / "work").rglob("*") if p.is_file()] == [], name
 
 
 def test_docker_stop_of_the_gpu_worker_checkpoints_and_hands_the_job_on(deployment: Deployment) -> None:

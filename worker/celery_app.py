@@ -35,12 +35,12 @@ from collections.abc import Callable
 
 import billiard.process
 from celery import Celery
-from celery.signals import worker_ready, worker_shutting_down
+from celery.signals import worker_init, worker_ready, worker_shutting_down
 
 from cmc.images import DECODE_MEMORY
 from service.jobs import TASK_NAMES, CeleryJobQueue, task_queues
 from service.settings import Settings, load_settings
-from service.storage import LocalStorage
+from service.storage import StorageError, open_storage
 from service.store import SceneStore
 from worker.pipeline import DELIVER_EVERY_SECONDS, JobContext, deliver, requeue_stale_jobs, run_job, run_video
 from worker.webhooks import deliver as deliver_webhook
@@ -79,7 +79,7 @@ _shutdown = threading.Event()  # set: the job running in this process checkpoint
 def new_context() -> JobContext:
     queue = CeleryJobQueue.from_settings(settings)
     store = SceneStore(settings.resolved_database_url, migrate=settings.migrate_on_start)
-    return JobContext(store, LocalStorage(settings.resolved_storage_dir), queue, settings, shutdown=_shutdown)
+    return JobContext(store, open_storage(settings), queue, settings, shutdown=_shutdown)
 
 
 def context() -> JobContext:
@@ -157,6 +157,17 @@ def _background(stop: threading.Event) -> None:
 
 
 _background_stop = threading.Event()
+
+
+@worker_init.connect
+def _check_storage(**_: object) -> None:
+    """Stop at start, saying why, when the artifact storage cannot be written (a bucket out of
+    reach), rather than fail every job later."""
+    try:
+        open_storage(settings)
+    except StorageError as e:
+        log.critical("%s", e)
+        raise SystemExit(f"cmc worker: {e}") from None
 
 
 @worker_ready.connect

@@ -9,6 +9,9 @@ A job runs in two phases, each a separate task so GPU workers only train and bak
 * ``train`` (GPU queue): trains with checkpoints in ``{id}/checkpoint.pt`` (resumed when a
   previous worker died), bakes ``{id}/baked/``, marks the scene ready.
 
+Phases work on local copies (:meth:`Storage.reading`, :meth:`Storage.writing`: the stored files
+themselves on local storage, downloads and uploads with S3) and publish each result whole.
+
 While a phase runs, a heartbeat thread renews the job's lease, writes progress to the scene
 record and reads the cancel flag every ``heartbeat_seconds``, so DELETE stops a job within
 seconds; the phase's time limit is enforced by the same thread. Work stops cooperatively at
@@ -28,7 +31,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import shutil
 import socket
 import threading
 import time
@@ -205,14 +207,6 @@ def kick_webhooks(ctx: JobContext, scene_id: str) -> None:
     kick(ctx, scene_id)
 
 
-def _fresh_dir(ctx: JobContext, key: str) -> Path:
-    """An empty folder at storage ``key`` (leftovers of an interrupted attempt removed)."""
-    p = ctx.storage.path(key)
-    if p.exists():
-        shutil.rmtree(p)
-    return p
-
-
 # Share of pose estimation done when a stage starts, for the status' progress (SfM's stages report
 # nothing finer): the median stage times on fern's three 12 MP phone photos (bench/poses_fern.md:
 # intake 1.2 s, SIFT 9.4 s, matching 1.7 s, mapping 0.2 s of 12.7 s).
@@ -235,6 +229,7 @@ def _training_prior_s(options: dict[str, Any]) -> float:
 
 
 def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
+    from cmc.datasets import CAMERAS_FILE
     from cmc.eta import REFERENCE_POSES_S
     from cmc.poses import PoseEstimationCancelled, PoseOptions, estimate_poses, poses_from_client
 
@@ -251,8 +246,6 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     hb.set(status="estimating_poses", progress=0.0, eta_seconds=eta, detail="estimating camera poses")
     hb.flush()
     layout = SceneLayout(rec.id)
-    scene_dir = _fresh_dir(ctx, layout.scene_dir)
-    uploads = [ctx.storage.path(layout.upload(name)) for name in rec.upload_files]
     options = PoseOptions(
         long_side=int(rec.options["resolution"]),
         seed=int(rec.options["seed"]),
@@ -262,11 +255,16 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     )
     hooks = dict(should_stop=hb.should_stop, on_stage=on_stage)
     try:
-        if rec.has_cameras:
-            cameras = json.loads(ctx.storage.read_bytes(layout.cameras_upload))
-            result = poses_from_client(uploads, cameras, scene_dir, options, **hooks)
-        else:
-            result = estimate_poses(uploads, scene_dir, options, **hooks)
+        with (
+            ctx.storage.reading(layout.uploads) as uploaded,
+            ctx.storage.writing(layout.scene_dir, manifest=CAMERAS_FILE) as scene_dir,
+        ):
+            uploads = [uploaded / name for name in rec.upload_files]
+            if rec.has_cameras:
+                cameras = json.loads(ctx.storage.read_bytes(layout.cameras_upload))
+                result = poses_from_client(uploads, cameras, scene_dir, options, **hooks)
+            else:
+                result = estimate_poses(uploads, scene_dir, options, **hooks)
     except PoseEstimationCancelled:
         raise JobStopped(hb.reason or "cancelled") from None
     hb.check()
@@ -301,17 +299,23 @@ def deliver(ctx: JobContext, scene_id: str | None = None) -> list[str]:
 
 
 def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
+    with ctx.storage.reading(SceneLayout(rec.id).scene_dir) as scene_dir, ctx.storage.scratch() as work:
+        _train_and_bake_in(ctx, rec, hb, scene_dir, work)
+
+
+def _train_and_bake_in(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path, work: Path) -> None:
+    """Train on the scene folder ``scene_dir`` with checkpoints written in ``work`` and each one
+    published to storage, then bake into storage."""
     import torch
 
-    from cmc.baking import bake
+    from cmc.baking import MANIFEST, bake
     from cmc.config import preset_config
     from cmc.datasets import load_scene_folder
     from cmc.eta import REFERENCE_STEP_S, bake_steps
     from cmc.training import Progress, Trainer, TrainingCancelled
 
-    s, opts = ctx.settings, rec.options
-    layout = SceneLayout(rec.id)
-    scene = load_scene_folder(ctx.storage.path(layout.scene_dir))
+    s, opts, layout = ctx.settings, rec.options, SceneLayout(rec.id)
+    scene = load_scene_folder(scene_dir)
     overrides: dict[str, Any] = {"seed": int(opts["seed"])}
     if opts.get("steps"):
         overrides["steps"] = int(opts["steps"])
@@ -326,16 +330,17 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     trainer = Trainer(scene, cfg, device)
-    ckpt = ctx.storage.path(layout.checkpoint)
+    ckpt_key, ckpt = layout.checkpoint, work / "checkpoint.pt"
     resumed_from = 0
-    if ckpt.exists():
-        try:
-            trainer.load_checkpoint(ckpt)
-            resumed_from = trainer.step
-        except Exception:  # torn by an old crash or another configuration: start over
-            log.warning("job %s: unusable checkpoint, training from step 0", rec.id, exc_info=True)
-            ckpt.unlink(missing_ok=True)
-            trainer = Trainer(scene, cfg, device)
+    with ctx.storage.reading(ckpt_key) as saved:
+        if saved.exists():
+            try:
+                trainer.load_checkpoint(saved)
+                resumed_from = trainer.step
+            except Exception:  # torn by an old crash or another configuration: start over
+                log.warning("job %s: unusable checkpoint, training from step 0", rec.id, exc_info=True)
+                ctx.storage.delete(ckpt_key)
+                trainer = Trainer(scene, cfg, device)
     stats = {**rec.stats, "train": {"steps": cfg.steps, "device": str(device), "resumed_from_step": resumed_from}}
     hb.set(
         status="training",
@@ -352,6 +357,12 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
         step_s = p.elapsed_s / (p.step - resumed_from)
         hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s + bake_cost * step_s, 1))
 
+    def publish_checkpoint(path: Path) -> None:
+        try:
+            ctx.storage.publish(ckpt_key, path)
+        except Exception:  # only for resuming: the next one may get through
+            log.warning("job %s: could not store the checkpoint of step %d", rec.id, trainer.step, exc_info=True)
+
     try:
         trainer.fit(
             on_progress=on_progress,
@@ -359,6 +370,7 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
             checkpoint_path=ckpt,
             resume=False,
             checkpoint_seconds=s.checkpoint_seconds,
+            on_checkpoint=publish_checkpoint,
         )
     except TrainingCancelled:
         raise JobStopped(hb.reason or "cancelled") from None
@@ -367,15 +379,13 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     hb.flush()
     hb.check()
     t0 = time.perf_counter()
-    tmp = _fresh_dir(ctx, layout.baked_tmp)
-    bake(trainer.model, tmp)
-    final = _fresh_dir(ctx, layout.baked())
-    os.replace(tmp, final)
+    with ctx.storage.writing(layout.baked(), manifest=MANIFEST) as baked:
+        bake(trainer.model, baked)
     stats["train"].update(seconds_this_attempt=round(train_s, 2), bake_seconds=round(time.perf_counter() - t0, 2))
     ready = dict(progress=1.0, eta_seconds=0.0, detail=None, stats=stats)
     if not ctx.store.advance(rec.id, ctx.worker_id, "done", "ready", **ready):
         raise JobStopped("lease_lost")
-    ckpt.unlink(missing_ok=True)  # the baked MPI is the product; the checkpoint was for resuming
+    ctx.storage.delete(ckpt_key)  # the baked MPI is the product; the checkpoint was for resuming
 
 
 class VideoStopped(Exception):
@@ -406,11 +416,12 @@ def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
                 raise VideoStopped(f"video {path} of {scene_id} stopped")
 
     try:
-        baked = BakedScene.load(ctx.storage.path(layout.baked()))
-        render_path_video(baked, path, ctx.storage.path(mp4), on_frame=on_frame)  # type: ignore[arg-type]
+        with ctx.storage.reading(layout.baked()) as folder:
+            baked = BakedScene.load(folder)
+        with ctx.storage.writing(mp4) as out:  # published only if every frame was rendered
+            render_path_video(baked, path, out, on_frame=on_frame)  # type: ignore[arg-type]
     except VideoStopped:
-        ctx.storage.path(mp4).unlink(missing_ok=True)
-        return "stopped"
+        return "stopped"  # the unfinished file was dropped with its working folder
     except Exception as e:
         log.exception("video %s of %s failed", path, scene_id)
         error = f"{type(e).__name__}: {e}"

@@ -75,6 +75,13 @@ ERRORS_READY: dict[int | str, dict[str, Any]] = {
     409: {"model": ErrorBody, "description": "the scene is not ready yet (code scene_not_ready)"},
 }
 _INT = {"schema": {"type": "integer"}}
+FROM_BUCKET: dict[int | str, dict[str, Any]] = {  # service.storage.file_response
+    307: {
+        "description": "with S3 storage (CMC_STORAGE=s3://...): the file is downloaded from the bucket at the "
+        "presigned URL in Location (valid CMC_S3_URL_SECONDS)",
+        "headers": {"Location": {"schema": {"type": "string"}, "description": "presigned GET URL"}},
+    }
+}
 RATE_LIMIT_HEADERS = {
     "RateLimit-Limit": {
         **_INT,

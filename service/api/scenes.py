@@ -27,7 +27,7 @@ from service.api.deps import (
     too_many,
 )
 from service.errors import APIError, ErrorCode
-from service.layout import ClientNames, SceneLayout
+from service.layout import CAMERAS_UPLOAD, ClientNames, SceneLayout
 from service.quotas import STATE_KEY, headers_of
 from service.schemas import (
     ErrorBody,
@@ -173,25 +173,27 @@ async def _create_scene(
 ) -> Response:
     """Receive, check and store the upload as scene ``scene_id`` and queue its job (or answer
     with the scene an earlier upload with the same Idempotency-Key made)."""
-    s = svc.settings
+    s, layout = svc.settings, SceneLayout(scene_id)
     try:
-        upload = await receive_upload(request, s, svc.storage, scene_id)
-        if idempotency_key:
-            existing = await run_in_threadpool(svc.store.find_by_idempotency_key, owner, idempotency_key)
-            if existing is not None:
-                if existing.request_digest != upload.digest:
-                    raise APIError(
-                        409, ErrorCode.idempotency_conflict, "this Idempotency-Key was used for a different upload"
-                    )
-                await run_in_threadpool(svc.storage.delete_scene, scene_id)
-                return _created(existing, replayed=True)
-        stored = await asyncio.wrap_future(svc.intake.submit(check_images, upload, s))
-        options = parse_options(upload, s)
-        callback_url = await run_in_threadpool(parse_callback_url, upload, s)
-        cameras = await run_in_threadpool(parse_cameras, upload, stored)
-        if cameras is not None:
-            key, data = SceneLayout(scene_id).cameras_upload, json.dumps(cameras).encode()
-            await run_in_threadpool(svc.storage.write_bytes, key, data)
+        with svc.storage.scratch() as tmp:  # checked here, then published whole as layout.uploads
+            staged = tmp / "uploads"
+            staged.mkdir()
+            upload = await receive_upload(request, s, staged)
+            if idempotency_key:
+                existing = await run_in_threadpool(svc.store.find_by_idempotency_key, owner, idempotency_key)
+                if existing is not None:
+                    if existing.request_digest != upload.digest:
+                        raise APIError(
+                            409, ErrorCode.idempotency_conflict, "this Idempotency-Key was used for a different upload"
+                        )
+                    return _created(existing, replayed=True)  # nothing of this upload was stored
+            stored = await asyncio.wrap_future(svc.intake.submit(check_images, upload, s))
+            options = parse_options(upload, s)
+            callback_url = await run_in_threadpool(parse_callback_url, upload, s)
+            cameras = await run_in_threadpool(parse_cameras, upload, stored)
+            if cameras is not None:
+                (staged / CAMERAS_UPLOAD).write_text(json.dumps(cameras))
+            await run_in_threadpool(svc.storage.publish, layout.uploads, staged)
         rec, created = await run_in_threadpool(
             lambda: svc.store.create(
                 owner,
@@ -293,11 +295,11 @@ def get_cameras(
     from cmc.cameras import CameraFile, camera_file_to_dict, load_camera_file
 
     rec = owned_scene(svc, scene_id, owner)
-    path = svc.storage.path(SceneLayout(scene_id).cameras)
-    if rec.phase == "poses" or not path.exists():
-        message = f"camera poses are not estimated yet ({rec.status})"
-        raise APIError(409, ErrorCode.scene_not_ready, message, {"status": rec.status})
-    cf = load_camera_file(path)
+    with svc.storage.reading(SceneLayout(scene_id).cameras) as path:
+        if rec.phase == "poses" or not path.exists():
+            message = f"camera poses are not estimated yet ({rec.status})"
+            raise APIError(409, ErrorCode.scene_not_ready, message, {"status": rec.status})
+        cf = load_camera_file(path)
     names = [ClientNames(rec.upload_files, rec.upload_names).of(p) for p in cf.file_paths]  # the client's names
     return camera_file_to_dict(CameraFile(cf.cameras, names, cf.near_far), convention)
 

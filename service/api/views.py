@@ -12,11 +12,12 @@ from typing import Annotated, Literal
 import numpy as np
 from fastapi import APIRouter, Header, Query, Response
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse
 
 from service.api.deps import (
     ERRORS_READY,
     ERRORS_RENDER,
+    FROM_BUCKET,
     RATE_LIMIT_HEADERS,
     Owner,
     RenderQuota,
@@ -43,6 +44,7 @@ from service.schemas import (
     VideoBuilding,
 )
 from service.settings import Settings
+from service.storage import file_response
 
 log = logging.getLogger("cmc.api")
 router = APIRouter()
@@ -174,30 +176,35 @@ async def render_depth(
 )
 def get_mpi(scene_id: SceneId, svc: Svc, owner: Owner) -> Response:
     ready_scene(svc, scene_id, owner)
-    return FileResponse(svc.storage.path(SceneLayout(scene_id).manifest), media_type="application/json")
+    return Response(svc.storage.read_bytes(SceneLayout(scene_id).manifest), media_type="application/json")
 
 
 @router.get(
     "/v1/scenes/{scene_id}/mpi/{name}",
-    responses={**ERRORS_READY, 200: {"content": {"image/png": {}, "application/json": {}}, "description": "a file"}},
+    responses={
+        **ERRORS_READY,
+        **FROM_BUCKET,
+        200: {"content": {"image/png": {}, "application/json": {}}, "description": "a file"},
+    },
     summary="A file of the baked MPI: mpi.json or an atlas it names",
 )
 def get_mpi_file(scene_id: SceneId, name: str, svc: Svc, owner: Owner) -> Response:
     ready_scene(svc, scene_id, owner)
     layout = SceneLayout(scene_id)
-    manifest_path = svc.storage.path(layout.manifest)
+    manifest = svc.storage.read_bytes(layout.manifest)
     if name == "mpi.json":
-        return FileResponse(manifest_path, media_type="application/json")
-    atlases = {m["atlas"] for m in json.loads(manifest_path.read_text())["mpis"]}
+        return Response(manifest, media_type="application/json")
+    atlases = {m["atlas"] for m in json.loads(manifest)["mpis"]}
     if name not in atlases:  # only names the manifest lists; never a client-built path
         raise not_found("file")
-    return FileResponse(svc.storage.path(layout.baked(name)), media_type="image/png")
+    return file_response(svc.storage, layout.baked(name), "image/png")
 
 
 @router.get(
     "/v1/scenes/{scene_id}/export.glb",
     responses={
         **ERRORS_READY,
+        **FROM_BUCKET,
         200: {"content": {"model/gltf-binary": {}}, "description": "glTF 2.0 binary: textured planes and cameras"},
     },
     response_class=Response,
@@ -226,18 +233,20 @@ async def export_glb(
 
         def write() -> None:
             names = rec.upload_names if len(rec.upload_names) == count else None  # the photos' names
-            data, _ = build(svc.storage.path(layout.baked()), index, names)
+            with svc.storage.reading(layout.baked()) as folder:
+                data, _ = build(folder, index, names)
             svc.storage.write_bytes(key, data)
 
         await svc.render_queue.run(write)
-    headers = {"Content-Disposition": f'attachment; filename="{scene_id}.glb"', "Cache-Control": "private"}
-    return FileResponse(svc.storage.path(key), media_type="model/gltf-binary", headers=headers)
+    headers = {"Cache-Control": "private"}
+    return file_response(svc.storage, key, "model/gltf-binary", f"{scene_id}.glb", headers)
 
 
 @router.get(
     "/v1/scenes/{scene_id}/video",
     responses={
         **ERRORS_READY,
+        **FROM_BUCKET,
         200: {"content": {"video/mp4": {}}, "description": "H.264 MP4 of the camera path"},
         202: {"model": VideoBuilding, "description": "being rendered: ask again after Retry-After seconds"},
         500: {"model": ErrorBody, "description": "rendering failed (code video_failed); asking again retries"},
@@ -255,7 +264,7 @@ def get_video(
     mp4 = SceneLayout(scene_id).video(path)
     job = svc.store.videos.get(scene_id, path)
     if (job is None or job.status == "ready") and svc.storage.exists(mp4):
-        return FileResponse(svc.storage.path(mp4), media_type="video/mp4", headers={"Cache-Control": "private"})
+        return file_response(svc.storage, mp4, "video/mp4", headers={"Cache-Control": "private"})
     if job is not None and job.status == "failed":
         svc.store.videos.forget(scene_id, path)  # the next request tries again
         raise APIError(500, ErrorCode.video_failed, f"rendering the {path} video failed: {job.error}")
