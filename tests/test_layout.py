@@ -1,9 +1,12 @@
 """One artifact layout (service.layout): every key of a scene is one storage accepts and stays
-inside the scene's folder; our stored photo names map back to the client's."""
+inside the scene's folder; our stored photo names map back to the client's; no code outside
+LocalStorage asks for a stored file's path."""
 
 from __future__ import annotations
 
+import re
 import uuid
+from pathlib import Path
 
 from service.layout import ClientNames, SceneLayout
 from service.storage import LocalStorage
@@ -36,3 +39,12 @@ def test_client_names() -> None:
     assert names.of("images/01.png") == "garden shot.heic" and names.of("00.jpg") == "IMG_1.JPG"
     assert names.of("other.png") == "other.png"
     assert names.in_text("00.jpg and 01.heic differ") == "IMG_1.JPG and garden shot.heic differ"
+
+
+def test_artifacts_are_reached_through_reading_and_writing_only() -> None:
+    """Outside LocalStorage no code asks storage for a path (S3 has none): it goes through
+    ``reading`` / ``writing`` / ``publish``, with keys from SceneLayout."""
+    root = Path(__file__).resolve().parents[1]
+    for path in sorted([*(root / "service").rglob("*.py"), *(root / "worker").rglob("*.py")]):
+        if path.name != "storage.py":
+            assert not re.search(r"storage\.path\(", path.read_text()), f"{path} uses storage.path()"
