@@ -40,6 +40,7 @@ class LossConfig:
     # Form of both depth-consistency terms: "squared" (the paper's, on depth / (far - near)) or
     # "cauchy" (occlusion-tolerant, on disparity; cmc.losses.robust_depth_consistency).
     depth_consistency: Literal["squared", "cauchy"] = "squared"
+    lambda_alpha_entropy: float = 0.0  # visible alpha pushed to 0 or 1 (cmc.losses.alpha_entropy)
     recon_only_fraction: float = 0.3  # first fraction of steps uses L_MSE only (paper: 15/50 epochs)
     ac_geometry_only: bool = False  # L_ac moves alpha only, not colours (see bench/RESULTS.md)
 
@@ -85,7 +86,8 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       photo from the border's), 48 planes, the paper's
       losses except L_ac (which blurred novel views in the ablation), the depth-consistency terms
       in an occlusion-tolerant form (cmc.losses.robust_depth_consistency), plus a concentration
-      prior on each ray's opacity (cmc.losses.distortion), 400 steps: about 2-3 minutes on fern
+      prior on each ray's opacity (cmc.losses.distortion) and a binary-entropy prior on the alpha
+      a ray sees (cmc.losses.alpha_entropy: no faint fog in front of surfaces), 400 steps: about 2-3 minutes on fern
       (504x378), 2 CPU cores.
     """
     if name == "paper":
@@ -103,10 +105,13 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
         # the concentration prior keeps each ray's opacity on one surface (without it training
         # spreads alpha into fog: wrong depth, blur, doubling between the input views); with opacity
         # concentrated, the depth-consistency terms pay only in their occlusion-tolerant form, at a
-        # weight that suits it; L_ac blurred the views on fern and still does not pay.
+        # weight that suits it; L_ac blurred the views on fern and still does not pay. The entropy
+        # prior clears the faint alpha left in front of surfaces, which doubled them between the
+        # inputs: synthetic halfway views +0.8 dB, fern LPIPS-alex 0.238 -> 0.196, faster renders.
         loss = LossConfig(
             lambda_ac=0.0,
             lambda_distortion=0.01,
+            lambda_alpha_entropy=0.01,
             depth_consistency="cauchy",
             lambda_dc=0.01,
             lambda_dc_input=0.01,

@@ -88,3 +88,22 @@ def distortion(outs: Sequence[RayOutput], num_planes: int) -> torch.Tensor:
         per_ray = 2 * (w * (s * W - S)).sum(1) + (w**2).sum(1) * delta / 3
         terms.append((_mask(o) * per_ray).mean())
     return torch.stack(terms).mean()
+
+
+def alpha_entropy(outs: Sequence[RayOutput]) -> torch.Tensor:
+    """Binary entropy of the alpha a ray meets, weighted by its transmittance there.
+
+    Per ray: ``sum_k T_k H(a_k)`` with ``H(a) = -a log a - (1 - a) log(1 - a)``, alpha and
+    transmittance recovered from the compositing weights (``T_k = 1 - sum_{l<k} w_l``,
+    ``a_k = w_k / T_k``). Faint alpha in front of a surface (fog: a ghost of a surface at another
+    depth once the view moves) costs, clear space (a = 0) and an opaque surface (a = 1) do not,
+    nor anything behind an opaque surface. Mean over MPIs and covered rays.
+    """
+    terms = []
+    for o in outs:
+        w = o.weights
+        trans = (1 - (torch.cumsum(w, 1) - w)).clamp(0, 1)
+        a = (w / trans.clamp_min(1e-4)).clamp(1e-6, 1 - 1e-6)
+        h = -(a * torch.log(a) + (1 - a) * torch.log1p(-a))
+        terms.append((_mask(o) * (trans * h).sum(1)).mean())
+    return torch.stack(terms).mean()

@@ -29,6 +29,7 @@ from cmc.errors import CheckpointError
 from cmc.eta import TrainingETA
 from cmc.geometry import sample_virtual_pose
 from cmc.losses import (
+    alpha_entropy,
     appearance_consistency,
     depth_consistency,
     distortion,
@@ -156,6 +157,10 @@ class Trainer:
             losses["distortion"] = distortion([o for outs in by_target for o in outs], self.model.cfg.num_planes)
         else:
             losses["distortion"] = zero
+        if lc.lambda_alpha_entropy > 0:
+            losses["alpha_entropy"] = alpha_entropy([o for outs in by_target for o in outs])
+        else:
+            losses["alpha_entropy"] = zero
         smooth = [f.smoothness() for f in fields if hasattr(f, "smoothness")] if lc.lambda_smooth > 0 else []
         losses["smooth"] = torch.stack(smooth).mean() if smooth else zero
         losses["total"] = (
@@ -165,6 +170,7 @@ class Trainer:
             + lc.lambda_dc * losses["dc"]
             + lc.lambda_smooth * losses["smooth"]
             + lc.lambda_distortion * losses["distortion"]
+            + lc.lambda_alpha_entropy * losses["alpha_entropy"]
         )
         return losses
 
