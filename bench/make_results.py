@@ -136,7 +136,10 @@ VQ_ABLATION = [
         "`fast` of the previous session: the margin texels start with the plane-sweep geometry of the image "
         "border (`model.pyramid.stereo_extend_border`)",
     ),
-    ("view_quality_synthetic_entropy03.json", "... + alpha entropy prior 0.03 (too strong: halfway -0.6 dB against 0.01)"),
+    (
+        "view_quality_synthetic_entropy03.json",
+        "... + alpha entropy prior 0.03 (too strong: halfway -0.6 dB against 0.01)",
+    ),
     (SYN_AFTER, NOW_LABEL),
 ]
 
