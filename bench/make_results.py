@@ -106,6 +106,9 @@ FERN_STEPS = [
         "entropy03",
         "... + alpha entropy prior 0.03 (too strong: the reconstruction loss stays high; PSNR -0.2, SSIM -0.024)",
     ),
+    # The cross-view consistency terms re-checked on the final preset.
+    ("entropy_nodc", "`fast` now without L_dc^I and L_dc (they still pay: -0.30 dB, SSIM -0.017)"),
+    ("entropy_ac", "`fast` now + L_ac (still does not pay: SSIM -0.005, LPIPS-vgg +0.023)"),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
@@ -136,6 +139,11 @@ VQ_ABLATION = [
         "`fast` of the previous session: the margin texels start with the plane-sweep geometry of the image "
         "border (`model.pyramid.stereo_extend_border`)",
     ),
+    (
+        "view_quality_synthetic_entropy_nodc.json",
+        "`fast` now without L_dc^I and L_dc (they still pay: halfway -0.77 dB)",
+    ),
+    ("view_quality_synthetic_entropy_ac.json", "`fast` now + L_ac (still does not pay: halfway -0.17 dB, blurrier)"),
     (
         "view_quality_synthetic_entropy03.json",
         "... + alpha entropy prior 0.03 (too strong: halfway -0.6 dB against 0.01)",
