@@ -87,8 +87,8 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       losses except L_ac (which blurred novel views in the ablation), the depth-consistency terms
       in an occlusion-tolerant form (cmc.losses.robust_depth_consistency), plus a concentration
       prior on each ray's opacity (cmc.losses.distortion) and a binary-entropy prior on the alpha
-      a ray sees (cmc.losses.alpha_entropy: no faint fog in front of surfaces), 400 steps: about 2-3 minutes on fern
-      (504x378), 2 CPU cores.
+      a ray sees (cmc.losses.alpha_entropy: no faint fog in front of surfaces), 400 steps: about
+      2-3 minutes on fern (504x378), 2 CPU cores.
     """
     if name == "paper":
         cfg = TrainConfig(
