@@ -9,6 +9,8 @@ import math
 import os
 import socket
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +23,27 @@ from cmc.datasets import Scene, synthetic_cameras, synthetic_scene
 S3_CREDENTIALS = {"AWS_ACCESS_KEY_ID": "test", "AWS_SECRET_ACCESS_KEY": "test", "AWS_DEFAULT_REGION": "us-east-1"}
 SHARED_DIR = Path(os.environ.get("CMC_SHARED_DIR") or Path(__file__).resolve().parents[1].parent / "shared")
 REDIS_URL = os.environ.get("CMC_TEST_REDIS", "redis://127.0.0.1:6379/14")  # the real Redis of the tests
+PG_ADMIN = os.environ.get("CMC_TEST_POSTGRES", "postgresql://postgres@127.0.0.1:5432/postgres")  # the real PostgreSQL
+
+
+@contextmanager
+def throwaway_postgres(prefix: str = "cmc_test_") -> Iterator[str]:
+    """A new, empty database on the real PostgreSQL (``PG_ADMIN``); yields its SQLAlchemy URL and
+    drops it afterwards. Skips the test when the server cannot be reached (fails under CI)."""
+    psycopg = pytest.importorskip("psycopg")
+    name = f"{prefix}{uuid.uuid4().hex[:12]}"
+    try:
+        admin = psycopg.connect(PG_ADMIN, autocommit=True, connect_timeout=3)
+    except psycopg.OperationalError as e:
+        if os.environ.get("CI"):
+            raise
+        pytest.skip(f"no PostgreSQL at {PG_ADMIN}: {e}")
+    admin.execute(f'CREATE DATABASE "{name}"')
+    try:
+        yield PG_ADMIN.replace("postgresql://", "postgresql+psycopg://").rsplit("/", 1)[0] + f"/{name}"
+    finally:
+        admin.execute(f'DROP DATABASE "{name}" WITH (FORCE)')
+        admin.close()
 
 
 def rotation(axis, angle: float) -> np.ndarray:

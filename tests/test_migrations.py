@@ -6,18 +6,15 @@ under migrations; a database already at the newest revision is left alone."""
 
 from __future__ import annotations
 
-import os
-import uuid
 from collections.abc import Iterator
 from importlib import import_module
 
 import pytest
+from helpers import throwaway_postgres
 from sqlalchemy import create_engine, inspect, text
 
 from service.migrate import BASELINE, current, head, upgrade
 from service.store import Base, SceneStore
-
-PG_ADMIN = os.environ.get("CMC_TEST_POSTGRES", "postgresql://postgres@127.0.0.1:5432/postgres")
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -26,20 +23,8 @@ def url(request, tmp_path) -> Iterator[str]:
     if request.param == "sqlite":
         yield f"sqlite:///{tmp_path / 'cmc.db'}"
         return
-    psycopg = pytest.importorskip("psycopg")
-    name = f"cmc_test_{uuid.uuid4().hex[:12]}"
-    try:
-        admin = psycopg.connect(PG_ADMIN, autocommit=True, connect_timeout=3)
-    except psycopg.OperationalError as e:
-        if os.environ.get("CI"):
-            raise
-        pytest.skip(f"no PostgreSQL at {PG_ADMIN}: {e}")
-    admin.execute(f'CREATE DATABASE "{name}"')
-    try:
-        yield PG_ADMIN.replace("postgresql://", "postgresql+psycopg://").rsplit("/", 1)[0] + f"/{name}"
-    finally:
-        admin.execute(f'DROP DATABASE "{name}" WITH (FORCE)')
-        admin.close()
+    with throwaway_postgres() as url:
+        yield url
 
 
 def schema(engine, name: str | None = None) -> dict:

@@ -28,14 +28,12 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from helpers import S3_CREDENTIALS, new_bucket, render_body, synthetic_upload
+from helpers import PG_ADMIN, REDIS_URL, S3_CREDENTIALS, new_bucket, render_body, synthetic_upload, throwaway_postgres
 from PIL import Image
 
 from cmc.datasets import DEFAULT_LAYERS, render_layers
 from cmc.metrics import psnr
 
-REDIS_URL = os.environ.get("CMC_TEST_REDIS", "redis://127.0.0.1:6379/14")
-PG_ADMIN = os.environ.get("CMC_TEST_POSTGRES", "postgresql://postgres@127.0.0.1:5432/postgres")
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -177,23 +175,17 @@ def deployment(tmp_path):
         if os.environ.get("CI"):
             pytest.fail("Redis at 127.0.0.1:6379 and PostgreSQL at 127.0.0.1:5432 are needed")
         pytest.skip("needs Redis at 127.0.0.1:6379 and PostgreSQL at 127.0.0.1:5432")
-    import psycopg
     import redis
 
-    name = f"cmc_it_{uuid.uuid4().hex[:10]}"
-    admin = psycopg.connect(PG_ADMIN, autocommit=True, connect_timeout=3)
-    admin.execute(f'CREATE DATABASE "{name}"')
-    url = PG_ADMIN.replace("postgresql://", "postgresql+psycopg://").rsplit("/", 1)[0] + f"/{name}"
-    d = Deployment(tmp_path, url)
-    try:
-        yield d
-    finally:
-        d.stop()
-        r = redis.Redis.from_url(REDIS_URL)
-        r.flushdb()  # database 14 is these tests' own: queues, bindings, the killed worker's unacked message
-        r.close()
-        admin.execute(f'DROP DATABASE "{name}" WITH (FORCE)')
-        admin.close()
+    with throwaway_postgres("cmc_it_") as url:
+        d = Deployment(tmp_path, url)
+        try:
+            yield d
+        finally:
+            d.stop()
+            r = redis.Redis.from_url(REDIS_URL)
+            r.flushdb()  # database 14 is these tests' own: queues, bindings, the killed worker's unacked message
+            r.close()
 
 
 def test_upload_poll_render_and_depth_across_processes(deployment: Deployment) -> None:

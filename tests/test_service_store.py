@@ -4,15 +4,12 @@ tombstones of deleted scenes, pagination."""
 
 from __future__ import annotations
 
-import os
 import time
-import uuid
 
 import pytest
+from helpers import throwaway_postgres
 
 from service.store import IdempotencyConflict, SceneStore
-
-PG_ADMIN = os.environ.get("CMC_TEST_POSTGRES", "postgresql://postgres@127.0.0.1:5432/postgres")
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -22,23 +19,12 @@ def store(request, tmp_path):
         yield s
         s.close()
         return
-    psycopg = pytest.importorskip("psycopg")
-    name = f"cmc_test_{uuid.uuid4().hex[:12]}"
-    try:
-        admin = psycopg.connect(PG_ADMIN, autocommit=True, connect_timeout=3)
-    except psycopg.OperationalError as e:
-        if os.environ.get("CI"):
-            raise
-        pytest.skip(f"no PostgreSQL at {PG_ADMIN}: {e}")
-    admin.execute(f'CREATE DATABASE "{name}"')
-    url = PG_ADMIN.replace("postgresql://", "postgresql+psycopg://").rsplit("/", 1)[0] + f"/{name}"
-    s = SceneStore(url)
-    try:
-        yield s
-    finally:
-        s.close()
-        admin.execute(f'DROP DATABASE "{name}" WITH (FORCE)')
-        admin.close()
+    with throwaway_postgres() as url:
+        s = SceneStore(url)
+        try:
+            yield s
+        finally:
+            s.close()
 
 
 def make(store: SceneStore, owner: str = "o", key: str | None = None, digest: str | None = None):

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from helpers import synthetic_upload
+from helpers import REDIS_URL, synthetic_upload
 from test_service_api import RecordingQueue, png, settings_for, wait_for
 
 from service.app import create_app
@@ -33,7 +33,6 @@ from service.webhooks import CallbackRefused, owner_secret, resolve_callback, si
 from worker.webhooks import backoff, deliver
 
 ROOT = Path(__file__).resolve().parents[1]
-REDIS_URL = os.environ.get("CMC_TEST_REDIS", "redis://127.0.0.1:6379/14")
 SECRET = "test-master-secret"
 
 
