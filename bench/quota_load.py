@@ -39,7 +39,6 @@ import platform
 import random
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -53,7 +52,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 from PIL import Image
-from servers import free_port, wait_ready, write_report
+from servers import free_port, stop_process_groups, wait_ready, write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -280,12 +279,7 @@ def main() -> None:
         ) and sum(refused_by_metrics.values()) == sum(res["refused_by_code"].values())
         res["all_checks_pass"] = all(res["checks"].values())
     finally:
-        for p in procs:
-            try:
-                os.killpg(p.pid, signal.SIGTERM)
-                p.wait(15)
-            except (ProcessLookupError, subprocess.TimeoutExpired):
-                os.killpg(p.pid, signal.SIGKILL)
+        stop_process_groups(procs)
         import redis
 
         r = redis.Redis.from_url(args.redis)  # remove only this run's keys: queues and quota buckets

@@ -7,9 +7,12 @@ folder is on ``sys.path``).
 from __future__ import annotations
 
 import json
+import os
+import signal
 import socket
 import subprocess
 import time
+from collections.abc import Iterable
 from pathlib import Path
 
 import httpx
@@ -38,6 +41,29 @@ def wait_ready(
             pass
         time.sleep(0.2)
     raise RuntimeError(f"no answer from {url}{path}:\n{tail()}")
+
+
+def stop_process_groups(procs: Iterable[subprocess.Popen], grace_s: float = 15) -> None:
+    """Stop processes each started in a process group of its own (``start_new_session=True``):
+    SIGTERM every group, wait up to ``grace_s`` seconds in all, then SIGKILL the group of any
+    process still running. A group already gone is skipped."""
+
+    def signal_group(p: subprocess.Popen, sig: signal.Signals) -> None:
+        try:
+            os.killpg(p.pid, sig)
+        except ProcessLookupError:
+            pass
+
+    procs = list(procs)
+    for p in procs:
+        signal_group(p, signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    for p in procs:
+        try:
+            p.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            signal_group(p, signal.SIGKILL)
+            p.wait()
 
 
 def flush_redis(redis_url: str) -> None:

@@ -55,7 +55,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-from servers import flush_redis, free_port, wait_ready, write_report
+from servers import flush_redis, free_port, stop_process_groups, wait_ready, write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -278,15 +278,7 @@ def load_bench(args) -> None:
         rss = subprocess.run(["ps", "-o", "rss=", "-p", str(procs[0].pid)], capture_output=True, text=True).stdout
         report["api_rss_mb_after"] = int(rss.split()[0]) / 1024 if rss.split() else None
     finally:
-        for p in procs:
-            try:
-                os.killpg(p.pid, signal.SIGTERM)
-                p.wait(15)
-            except (ProcessLookupError, subprocess.TimeoutExpired):
-                try:
-                    os.killpg(p.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
+        stop_process_groups(procs)
         flush_redis(args.redis)
     write_report(report, args.out)
 
@@ -432,13 +424,7 @@ def main() -> None:
         print(f"{args.concurrent} concurrent renders: {ok} ok, slowest {report['concurrent']['slowest_s']:.1f} s")
         client.delete(f"/v1/scenes/{sid}")
     finally:
-        for p in procs:
-            try:
-                os.killpg(p.pid, signal.SIGTERM)
-                p.wait(15)
-            except (ProcessLookupError, subprocess.TimeoutExpired):
-                os.killpg(p.pid, signal.SIGKILL)
-
+        stop_process_groups(procs)
         flush_redis(args.redis)
     write_report(report, args.out)
 

@@ -43,7 +43,7 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from servers import flush_redis, free_port, wait_ready, write_report  # noqa: E402
+from servers import flush_redis, free_port, stop_process_groups, wait_ready, write_report  # noqa: E402
 
 from cmc.cameras import CameraFile, camera_file_to_dict  # noqa: E402
 from cmc.datasets import load_llff  # noqa: E402
@@ -137,12 +137,7 @@ def run(shape: str, args: argparse.Namespace, tmp: Path) -> dict:
         return row
     finally:
         client.close()
-        for p in procs.values():
-            try:
-                os.killpg(p.pid, signal.SIGTERM)
-                p.wait(30)
-            except (ProcessLookupError, subprocess.TimeoutExpired):
-                os.killpg(p.pid, signal.SIGKILL)
+        stop_process_groups(procs.values(), grace_s=30)
 
 
 def main() -> None:
