@@ -133,16 +133,21 @@ def _usages(granted: bool, counts: list[tuple[int, float | None]], claims: Seque
     return out
 
 
-# KEYS: one sorted set per claim (member: token, score: deadline in ms).
-# ARGV: now in ms (negative: the server's clock), token, then per key: limit, hold_ms, n_live,
-# the n_live live tokens. Returns {granted, now_ms, then per key: used, earliest deadline or -1}.
-_ACQUIRE = """
+# Both scripts' ARGV[1]: now in ms, or negative for the Redis server's clock; sets ``now``.
+_NOW = """
 local now = tonumber(ARGV[1])
 if now < 0 then
   local t = redis.call('TIME')
   now = tonumber(t[1]) * 1000 + math.floor(tonumber(t[2]) / 1000)
 end
-local token = ARGV[2]
+"""
+
+# KEYS: one sorted set per claim (member: token, score: deadline in ms).
+# ARGV: now in ms (negative: the server's clock), token, then per key: limit, hold_ms, n_live,
+# the n_live live tokens. Returns {granted, now_ms, then per key: used, earliest deadline or -1}.
+_ACQUIRE = (
+    _NOW
+    + """local token = ARGV[2]
 local at, granted, out, holds = 3, 1, {0, now}, {}
 for k, key in ipairs(KEYS) do
   local limit, hold, nlive = tonumber(ARGV[at]), tonumber(ARGV[at + 1]), tonumber(ARGV[at + 2])
@@ -168,20 +173,18 @@ end
 out[1] = granted
 return out
 """
+)
 
 # KEYS[1]: the bucket; ARGV: now in ms (negative: the server's clock), token, hold_ms.
-_HOLD = """
-local now = tonumber(ARGV[1])
-if now < 0 then
-  local t = redis.call('TIME')
-  now = tonumber(t[1]) * 1000 + math.floor(tonumber(t[2]) / 1000)
-end
-local hold = tonumber(ARGV[3])
+_HOLD = (
+    _NOW
+    + """local hold = tonumber(ARGV[3])
 if redis.call('ZADD', KEYS[1], 'XX', 'CH', now + hold, ARGV[2]) == 1 then
   if redis.call('PTTL', KEYS[1]) < hold then redis.call('PEXPIRE', KEYS[1], hold) end
 end
 return 1
 """
+)
 
 
 class RedisLimiter:
