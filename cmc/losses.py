@@ -90,6 +90,14 @@ def distortion(outs: Sequence[RayOutput], num_planes: int) -> torch.Tensor:
     return torch.stack(terms).mean()
 
 
+def alpha_and_transmittance(weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-plane alpha and transmittance recovered from compositing weights ``[R, D]`` (front to
+    back): ``T_k = 1 - sum_{l<k} w_l`` (clamped to [0, 1]) and ``a_k = w_k / T_k`` (``T_k`` at
+    least 1e-4). Both ``[R, D]``; alpha is not clamped."""
+    trans = (1 - (torch.cumsum(weights, 1) - weights)).clamp(0, 1)
+    return weights / trans.clamp_min(1e-4), trans
+
+
 def alpha_entropy(outs: Sequence[RayOutput]) -> torch.Tensor:
     """Binary entropy of the alpha a ray meets, weighted by its transmittance there.
 
@@ -101,9 +109,8 @@ def alpha_entropy(outs: Sequence[RayOutput]) -> torch.Tensor:
     """
     terms = []
     for o in outs:
-        w = o.weights
-        trans = (1 - (torch.cumsum(w, 1) - w)).clamp(0, 1)
-        a = (w / trans.clamp_min(1e-4)).clamp(1e-6, 1 - 1e-6)
+        a, trans = alpha_and_transmittance(o.weights)
+        a = a.clamp(1e-6, 1 - 1e-6)
         h = -(a * torch.log(a) + (1 - a) * torch.log1p(-a))
         terms.append((_mask(o) * (trans * h).sum(1)).mean())
     return torch.stack(terms).mean()

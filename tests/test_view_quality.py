@@ -10,7 +10,7 @@ import torch
 
 from cmc.config import preset_config, with_settings
 from cmc.datasets import synthetic_scene, wide_baseline_split
-from cmc.losses import alpha_entropy, distortion
+from cmc.losses import alpha_and_transmittance, alpha_entropy, distortion
 from cmc.metrics import psnr
 from cmc.rendering import RayOutput, composite, pixel_centers, render_rays
 from cmc.training import Trainer
@@ -83,8 +83,7 @@ def _visible_faint_alpha(trainer: Trainer, width: int, height: int) -> float:
         for j in range(len(trainer.scene)):
             with torch.no_grad():
                 w = render_rays(f, fr, trainer.K[j], trainer.poses[j], uv).weights
-            trans = (1 - (torch.cumsum(w, 1) - w)).clamp(0, 1)
-            a = w / trans.clamp_min(1e-4)
+            a, trans = alpha_and_transmittance(w)
             fog.append((trans * ((a > 0.05) & (a < 0.95))).sum(1).mean())
     return float(torch.stack(fog).mean())
 
