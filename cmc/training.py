@@ -153,12 +153,13 @@ class Trainer:
         unseen = by_target[n:]
         losses["ac"] = torch.stack([appearance_consistency(o) for o in unseen]).mean() if unseen else zero
         losses["dc"] = torch.stack([dc_loss(o) for o in unseen]).mean() if unseen else zero
+        every_out = [o for outs in by_target for o in outs]  # every MPI's render of every target
         if lc.lambda_distortion > 0:
-            losses["distortion"] = distortion([o for outs in by_target for o in outs], self.model.cfg.num_planes)
+            losses["distortion"] = distortion(every_out, self.model.cfg.num_planes)
         else:
             losses["distortion"] = zero
         if lc.lambda_alpha_entropy > 0:
-            losses["alpha_entropy"] = alpha_entropy([o for outs in by_target for o in outs])
+            losses["alpha_entropy"] = alpha_entropy(every_out)
         else:
             losses["alpha_entropy"] = zero
         smooth = [f.smoothness() for f in fields if hasattr(f, "smoothness")] if lc.lambda_smooth > 0 else []
