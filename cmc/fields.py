@@ -99,7 +99,6 @@ class PyramidFieldConfig:
     stereo_occlusion_aware: bool = True  # that prior takes the best-matching other view, not the mean
     stereo_edge_sigma: float = 0.1  # > 0: edge-aware cost aggregation (cmc.planesweep), colour scale
     stereo_extend_border: bool = True  # the margin starts with the image border's geometry (cmc.planesweep)
-    margin_fill: str = "edge"  # initial margin colour: "edge" extension or "smooth" (cmc.model.push_pull_fill)
 
 
 class PyramidPlaneField(MPIField):

@@ -15,38 +15,13 @@ from cmc.planesweep import alpha_from_weights, plane_sweep_weights
 from cmc.rendering import ImageOutput, MPIFrame, render_image
 
 
-def push_pull_fill(color: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """Fill where ``weight`` is 0 with a smooth extrapolation of the known colours.
-
-    Shape: color [C, h, w], weight [1, h, w] in [0, 1] (how much of a texel is known). Known
-    texels keep their colour; the rest blend in the next coarser level of a 2x pyramid of
-    weighted averages (a coarse texel counts as known once it covers one known texel), so the
-    fill is the nearby colour, blurrier the farther it lies from what is known: no streaks,
-    unlike edge extension.
-    """
-    h, w = color.shape[-2:]
-    if min(h, w) <= 2:
-        mean = (color * weight).sum((1, 2), keepdim=True) / weight.sum().clamp_min(1e-8)
-        return weight * color + (1 - weight) * mean
-    pooled_w = F.avg_pool2d(weight[None], 2, ceil_mode=True)[0]
-    pooled_c = F.avg_pool2d((color * weight)[None], 2, ceil_mode=True)[0] / pooled_w.clamp_min(1e-8)
-    coarse = push_pull_fill(pooled_c, (4 * pooled_w).clamp(max=1))
-    coarse = F.interpolate(coarse[None], size=(h, w), mode="bilinear", align_corners=False)[0]
-    return weight * color + (1 - weight) * coarse
-
-
-def padded_reference(image: np.ndarray, frame: MPIFrame, fill: str = "edge") -> torch.Tensor:
-    """[3, h, w] the reference photo resampled onto the plane extent (the initial colour of a
-    pyramid field); the margin beyond the photo is edge-extended (``fill="edge"``) or a smooth
-    extrapolation of the photo (``"smooth"``, :func:`push_pull_fill`)."""
+def padded_reference(image: np.ndarray, frame: MPIFrame) -> torch.Tensor:
+    """[3, h, w] the reference photo resampled onto the plane extent, edge-extended into the
+    margin (the initial colour of a pyramid field)."""
     img = torch.as_tensor(image, dtype=torch.float32).permute(2, 0, 1)[None]
     h, w = frame.extent
     grid = texel_grid(h, w)[None] * frame.margin  # plane grid -> image grid coordinates
-    if fill == "edge":
-        return F.grid_sample(img, grid, align_corners=False, padding_mode="border")[0]
-    inside = F.grid_sample(torch.ones_like(img[:, :1]), grid, align_corners=False, padding_mode="zeros")[0]
-    color = F.grid_sample(img, grid, align_corners=False, padding_mode="border")[0]
-    return push_pull_fill(color, inside)
+    return F.grid_sample(img, grid, align_corners=False, padding_mode="border")[0]
 
 
 class CMCModel(nn.Module):
@@ -99,7 +74,7 @@ class CMCModel(nn.Module):
                         extend_border=cfg.pyramid.stereo_extend_border,
                     )
                     init_alpha = alpha_from_weights(probs)
-                rgb = padded_reference(scene.images[i], fr, cfg.pyramid.margin_fill)
+                rgb = padded_reference(scene.images[i], fr)
                 fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha))
             else:
                 raise ValueError(f"unknown field type {cfg.field_type!r}")
