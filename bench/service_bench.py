@@ -77,7 +77,8 @@ def camera_body(split, i: int) -> dict:
 
 def deployed_env(tmp: Path, redis_url: str, run: str) -> dict[str, str]:
     """Environment of the deployed shape: Celery mode on ``redis_url``, data in ``tmp``, queues
-    of this run only, one API key (``bench-key``)."""
+    of this run only, one API key (``bench-key``). Both protocols measure latency and capacity, so
+    the per-key quotas (issue 15, measured by bench/quota_load.py) are off: one key sends everything."""
     return {
         **os.environ,
         "PYTHONPATH": str(ROOT),
@@ -87,6 +88,8 @@ def deployed_env(tmp: Path, redis_url: str, run: str) -> dict[str, str]:
         "CMC_CPU_QUEUE": f"bench-cpu-{run}",
         "CMC_GPU_QUEUE": f"bench-gpu-{run}",
         "CMC_API_KEYS": "bench-key",
+        "CMC_MAX_CONCURRENT_JOBS": "0",
+        "CMC_MAX_RENDERS_PER_SECOND": "0",
     }
 
 
@@ -215,7 +218,7 @@ def load_bench(args) -> None:
     run = uuid.uuid4().hex[:8]
     port = free_port()
     env = deployed_env(tmp, args.redis, run)
-    settings = {k: v for k, v in env.items() if k.startswith("CMC_RENDER")}
+    settings = {k: v for k, v in env.items() if k.startswith(("CMC_RENDER", "CMC_MAX_"))}
     headers = {"Authorization": "Bearer bench-key"}
     url = f"http://127.0.0.1:{port}"
     procs: list = []
@@ -242,7 +245,9 @@ def load_bench(args) -> None:
             files = [("images", (n, (fern / "images_8" / n).read_bytes(), "image/png")) for n in names]
             files.append(("cameras", ("cameras.json", json.dumps(cams).encode(), "application/json")))
             files.append(("options", (None, json.dumps({"steps": args.steps}))))
-            sids.append(client.post("/v1/scenes", files=files).json()["id"])
+            r = client.post("/v1/scenes", files=files)
+            r.raise_for_status()
+            sids.append(r.json()["id"])
         for sid in sids:
             while (body := client.get(f"/v1/scenes/{sid}").json())["status"] not in ("ready", "failed"):
                 time.sleep(2)
