@@ -114,6 +114,17 @@ FERN_STEPS = [
         "`fast` now with 80 planes instead of 48 (not adopted: -0.02 dB, LPIPS-vgg -0.005, for about 1.7x the "
         "training and 1.4x the render time)",
     ),
+    ("entropy_rerun", "`fast` now, rerun in a later session (the same scores: training is deterministic)"),
+    (
+        "entropy_fill",
+        "`fast` now with the margin's initial colour a smooth push-pull extrapolation of the photo instead of "
+        "its edge extended (not adopted: -0.02 dB, view 16 -0.06 dB; the option was removed; code: commit 99e0aed)",
+    ),
+    (
+        "entropy_recon01",
+        "`fast` now with the cross-view terms from 10 % of the steps instead of 30 % (not adopted: -0.02 dB, "
+        "LPIPS-vgg -0.002; synthetic halfway -0.24 dB)",
+    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
@@ -157,6 +168,20 @@ VQ_ABLATION = [
         "view_quality_synthetic_entropy03.json",
         "... + alpha entropy prior 0.03 (too strong: halfway -0.6 dB against 0.01)",
     ),
+    (
+        "view_quality_synthetic_entropy_acc.json",
+        "`fast` now + L_ac in Cauchy form, log(1 + (colour difference / 0.1)^2), 0.01 (not adopted: halfway +0.01 dB, "
+        "LPIPS-vgg 0.078 -> 0.093; the option was removed)",
+    ),
+    (
+        "view_quality_synthetic_entropy_fill.json",
+        "`fast` now, the margin's initial colour a smooth push-pull extrapolation instead of edge extension "
+        "(not adopted: halfway +0.04 dB, noise; the option was removed; code: commit 99e0aed)",
+    ),
+    (
+        "view_quality_synthetic_entropy_recon01.json",
+        "`fast` now with the cross-view terms from 10 % of the steps instead of 30 % (not adopted: halfway -0.24 dB)",
+    ),
     (SYN_AFTER, NOW_LABEL),
 ]
 
@@ -182,6 +207,8 @@ REMOVED_OPTIONS = {
     "loss.lambda_curvature": 0.0,
     "loss.curvature_edge_sigma": 0.05,
     "loss.recon_robust_scale": 0.0,
+    "loss.ac_cauchy_scale": 0.0,
+    "model.pyramid.margin_fill": "edge",
     "patches_per_view": 8,
     "patch_size": 8,
     "patch_stride": 2,
@@ -777,6 +804,36 @@ def main() -> None:
             "targets >= 45 dB, <= 1e-3); vs the kernel before: PSNR >= "
             f"{min(a['psnr_db'] for a in before['agreement_with_after']):.0f} dB, depth "
             f"{max(a['depth_max_rel'] for a in before['agreement_with_after']):.1e}\n",
+        ]
+    ent = load("render_entropy_cpu.json")
+    if ent:
+        sc, after, before = ent["scene"], ent["overall"], ent["before"]
+        speedup = before["overall"]["median_ms"] / after["median_ms"]
+        per_view = ", ".join(
+            f"{a['kind']} {a['view']}: {a['median_ms']:.0f} vs {b['median_ms']:.0f} ms"
+            for a, b in zip(ent["views"], before["views"], strict=True)
+        )
+        out += [
+            "## Serving cost (issue 10): the bake of today's `fast` preset\n",
+            "The renderer of the section above, on a bake of the `fast` preset with the alpha entropy prior "
+            "(issue 14: rays turn opaque sooner, so fewer samples are taken), against the torch renderer the "
+            "issue measured (`git show 8bdeb3b:cmc/rendering.py`), both timed alternately in one process, "
+            f"{ent['repeats_per_view']} renders per view after a warm-up, {ent['threads']} threads per render "
+            f"({sc['mpis']} MPIs x {sc['planes_per_mpi']} planes, textures {sc['tile'][1]}x{sc['tile'][0]}, "
+            f"rendered at {sc['render_size'][0]}x{sc['render_size'][1]}; the bake is the `fast now` rerun of "
+            "the view-quality table, scored there).\n",
+            f"Command: `{ent['command']}` (report copied to bench/render_entropy_cpu.json)  \n"
+            f"Machine: {ent['machine']['cpu']}, {ent['machine']['cores']} cores, torch {ent['torch']}, nothing "
+            f"else running. Date: {ent['date'][:10]}; git commit {ent['git_commit']}.\n",
+            f"- render: median {after['median_ms']:.0f} ms (p90 {after['p90_ms']:.0f}) against "
+            f"{before['overall']['median_ms']:.0f} ms (p90 {before['overall']['p90_ms']:.0f}) with the torch "
+            f"renderer: {speedup:.1f}x; the issue's target (p50 <= 50 ms, 4x) is still missed (per view: "
+            f"{per_view})",
+            f"- memory per loaded scene: {ent['memory']['scene_mb']:.0f} MB of textures, resident "
+            f"+{ent['memory']['rss_per_more_scene_mb']:.0f} MB per further scene",
+            f"- vs the torch renderer: colour PSNR >= "
+            f"{min(a['psnr_db'] for a in ent['agreement_with_torch']):.0f} dB, depth max relative difference "
+            f"{max(a['depth_max_rel'] for a in ent['agreement_with_torch']):.1e} (targets >= 45 dB, <= 1e-3)\n",
         ]
     load_report = load("service_load_cpu.json")
     if load_report:
