@@ -10,9 +10,12 @@ Fields:
 * :class:`MLPField` -- the paper's: an MLP over (positional encoding of (g, plane coordinate),
   raw ray direction) -> (rgb, alpha).
 * :class:`PyramidPlaneField` -- the ``fast`` preset: explicit textures. Colour is a full-resolution
-  base image shared by all planes (initialised to the reference photo) plus a per-plane
-  multi-resolution residual; alpha is a per-plane multi-resolution grid. Summing bilinear
-  samples of coarse-to-fine levels makes coarse levels learn first and acts as a smoothness prior.
+  base image shared by a group of adjacent planes (initialised to the reference photo) plus a
+  per-plane multi-resolution residual; alpha is a per-plane multi-resolution grid. Summing
+  bilinear samples of coarse-to-fine levels makes coarse levels learn first and acts as a
+  smoothness prior. With one base for all planes, a surface hidden behind a nearer one in the
+  reference photo would have that nearer surface's fine texture wherever another view sees it;
+  a base per group of planes gives it its own.
 * :class:`TextureField` -- fixed RGBA textures, the form a baked MPI takes.
 
 All fields keep the farthest plane opaque (alpha = 1) so that every covered ray is fully
@@ -26,6 +29,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from cmc.errors import ConfigError
 
 
 class MPIField(nn.Module):
@@ -92,6 +97,7 @@ class PyramidFieldConfig:
 
     scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane RGBA residual levels
     base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
+    base_groups: int = 1  # base colours: one per group of adjacent planes (1 to num_planes)
     stereo_init: bool = True  # start alpha from plane-sweep photo-consistency (cmc.planesweep)
     # Softmin temperature of that prior (mean abs colour difference). At 0.05 the prior was nearly
     # flat (training started from fog); at 0.01 it keeps the sweep's depth (bench/DIAGNOSIS.md).
@@ -104,13 +110,15 @@ class PyramidFieldConfig:
 class PyramidPlaneField(MPIField):
     """Explicit per-plane textures; see the module docstring.
 
-    Colour logits = base(g) + sum_l level_l(g)[:3]; alpha logit = sum_l level_l(g)[3], where
-    base is [3, h, w] and level l is [D, 4, h * s_l, w * s_l], all sampled bilinearly.
+    Colour logits of plane k = base[k * G // D](g) + sum_l level_l[k](g)[:3]; alpha logit =
+    sum_l level_l[k](g)[3], where base is [G, 3, h, w] (G = ``cfg.base_groups``, one base per
+    group of about D / G adjacent planes) and level l is [D, 4, h * s_l, w * s_l], all sampled
+    bilinearly.
 
     Args:
         num_planes: D.
         height, width: plane extent in reference-image pixels (image size times margin).
-        cfg: level scales.
+        cfg: level scales and base groups.
         init_rgb: [3, h, w] initial base colour in [0, 1] (the reference photo, padded).
         init_alpha: optional [D, h0, w0] initial alpha of each plane (any size; resampled to the
             finest level). Without it alpha starts at 1 / (D - k): equal composite weights.
@@ -132,8 +140,11 @@ class PyramidPlaneField(MPIField):
         def size(s: float) -> tuple[int, int]:
             return max(2, round(height * s)), max(2, round(width * s))
 
+        if not 1 <= cfg.base_groups <= num_planes:
+            raise ConfigError(f"base_groups must be 1 to num_planes ({num_planes}), got {cfg.base_groups}")
         base = F.interpolate(init_rgb[None].float(), size=size(cfg.base_scale), mode="bilinear", align_corners=False)
-        self.base = nn.Parameter(torch.logit(base[0].clamp(0.02, 0.98)))
+        base = torch.logit(base.clamp(0.02, 0.98)).expand(cfg.base_groups, -1, -1, -1)
+        self.base = nn.Parameter(base.contiguous())  # [G, 3, h, w]
         # Initial alpha 1 / (D - k), held by the coarsest level: every plane contributes equally.
         k = torch.arange(num_planes, dtype=torch.float32)
         alpha0 = torch.logit((1.0 / (num_planes - k)).clamp(max=0.99))
@@ -150,9 +161,18 @@ class PyramidPlaneField(MPIField):
     def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
         D = g.shape[1]
         grid = g.permute(1, 0, 2)[:, None]  # [D, 1, R, 2]
-        base = F.grid_sample(self.base[None], grid.reshape(1, 1, -1, 2), align_corners=False)
+        G = len(self.base)  # plane k takes base k * G // D: planes [ceil(g D / G), ceil((g + 1) D / G))
+        bounds = [-(-g * D // G) for g in range(G + 1)]
+        base = torch.cat(
+            [
+                F.grid_sample(self.base[g : g + 1], grid[k0:k1].reshape(1, 1, -1, 2), align_corners=False)
+                .reshape(3, k1 - k0, -1)
+                .transpose(0, 1)
+                for g, (k0, k1) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))
+            ]
+        )  # [D, 3, R]
         logits = sum(F.grid_sample(lvl, grid, align_corners=False)[:, :, 0] for lvl in self.levels)  # [D, 4, R]
-        color = logits[:, :3] + base.reshape(3, D, -1).transpose(0, 1)  # type: ignore[index]
+        color = logits[:, :3] + base  # type: ignore[index]
         alpha = logits[:, 3]  # type: ignore[index]
         return torch.sigmoid(color.permute(2, 0, 1)), _opaque_back(torch.sigmoid(alpha.T))
 
