@@ -161,14 +161,14 @@ class PyramidPlaneField(MPIField):
     def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
         D = g.shape[1]
         grid = g.permute(1, 0, 2)[:, None]  # [D, 1, R, 2]
-        G = len(self.base)  # plane k takes base k * G // D: planes [ceil(g D / G), ceil((g + 1) D / G))
-        bounds = [-(-g * D // G) for g in range(G + 1)]
+        G = len(self.base)  # plane k takes base k * G // D: planes [ceil(i D / G), ceil((i + 1) D / G))
+        bounds = [-(-i * D // G) for i in range(G + 1)]
         base = torch.cat(
             [
-                F.grid_sample(self.base[g : g + 1], grid[k0:k1].reshape(1, 1, -1, 2), align_corners=False)
+                F.grid_sample(self.base[i : i + 1], grid[k0:k1].reshape(1, 1, -1, 2), align_corners=False)
                 .reshape(3, k1 - k0, -1)
                 .transpose(0, 1)
-                for g, (k0, k1) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))
+                for i, (k0, k1) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))
             ]
         )  # [D, 3, R]
         logits = sum(F.grid_sample(lvl, grid, align_corners=False)[:, :, 0] for lvl in self.levels)  # [D, 4, R]

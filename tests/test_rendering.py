@@ -12,6 +12,7 @@ from helpers import rigid, rotation
 
 from cmc._reference import render_rays_reference, render_texture_image_reference
 from cmc.cameras import intrinsics
+from cmc.errors import ConfigError
 from cmc.fields import MLPField, MLPFieldConfig, PyramidFieldConfig, PyramidPlaneField, TextureField
 from cmc.geometry import apply_homography, homographies_ref_from_tgt, pixel_centers, plane_depths
 from cmc.metrics import psnr
@@ -410,3 +411,22 @@ def test_color_grad_false_sends_gradients_to_alpha_only() -> None:
         )
         assert float(field.levels[0].grad[:, 3].abs().sum()) > 0
         assert (colour_grad > 0) == flag
+
+
+@pytest.mark.parametrize("num_planes", [8, 7])
+def test_pyramid_base_groups_give_plane_k_the_base_k_times_g_over_d(num_planes):
+    """With ``base_groups`` G, plane k's colour uses base k * G // D (also when G does not divide
+    D); all bases start as the reference photo, so the field starts as with one base."""
+    torch.manual_seed(0)
+    D, h, w = num_planes, 12, 16
+    rgb, alpha = torch.rand(3, h, w), torch.rand(D, 6, 8)
+    one = PyramidPlaneField(D, h, w, PyramidFieldConfig(), rgb, alpha)
+    three = PyramidPlaneField(D, h, w, PyramidFieldConfig(base_groups=3), rgb, alpha)
+    g, z, dirs = torch.rand(40, D, 2) * 2 - 1, torch.linspace(-1, 1, D), torch.zeros(40, 3)
+    with torch.no_grad():
+        assert torch.equal(one(g, z, dirs)[0], three(g, z, dirs)[0])
+        three.base[1] += 4.0
+        changed = (three(g, z, dirs)[0] - one(g, z, dirs)[0]).abs().amax((0, 2)) > 0.01
+    assert changed.tolist() == [k * 3 // D == 1 for k in range(D)]
+    with pytest.raises(ConfigError):
+        PyramidPlaneField(2, h, w, PyramidFieldConfig(base_groups=3), rgb, alpha[:2])
