@@ -568,6 +568,14 @@ def hardening_section() -> list[str]:
     return out
 
 
+def per_view_times(after: dict, before: dict) -> str:
+    """Median render time per view of a bench/render_speed.py report against its ``before`` block."""
+    return ", ".join(
+        f"{a['kind']} {a['view']}: {a['median_ms']:.0f} vs {b['median_ms']:.0f} ms"
+        for a, b in zip(after["views"], before["views"], strict=True)
+    )
+
+
 def load_section(load_report: dict | None, title: str, bake: str, host: str) -> list[str]:
     """The render endpoint under load (bench/service_bench.py --load): table, verdict, encodings."""
     if not load_report:
@@ -832,10 +840,7 @@ def main() -> None:
         torch_depth = max(a["depth_max_rel"] for a in bands["agreement_with_torch"])
         held_out = ", ".join(str(a["view"]) for a in bands["agreement_with_torch"] if a["view"] in (0, 8, 16))
         speedup = before["overall"]["median_ms"] / after["median_ms"]
-        per_view = ", ".join(
-            f"{a['kind']} {a['view']}: {a['median_ms']:.0f} vs {b['median_ms']:.0f} ms"
-            for a, b in zip(bands["views"], before["views"], strict=True)
-        )
+        per_view = per_view_times(bands, before)
         out += [
             "## Serving cost (issue 10): baked render speed\n",
             "`cmc.texture_kernel` now packs every plane of every MPI into one buffer of 32-bit RGBA words framed "
@@ -872,10 +877,7 @@ def main() -> None:
     if ent:
         sc, after, before = ent["scene"], ent["overall"], ent["before"]
         speedup = before["overall"]["median_ms"] / after["median_ms"]
-        per_view = ", ".join(
-            f"{a['kind']} {a['view']}: {a['median_ms']:.0f} vs {b['median_ms']:.0f} ms"
-            for a, b in zip(ent["views"], before["views"], strict=True)
-        )
+        per_view = per_view_times(ent, before)
         out += [
             "## Serving cost (issue 10): the bake of today's `fast` preset\n",
             "The renderer of the section above, on a bake of the `fast` preset with the alpha entropy prior "
@@ -901,13 +903,13 @@ def main() -> None:
     out += load_section(
         load("service_load_cpu.json"),
         "## Render endpoint under load (issue 10, item 3)\n",
-        "the bake of the section \"baked render speed\" above",
+        'the bake of the section "baked render speed" above',
         "shared with another engineer's CPU training",
     )
     out += load_section(
         load("service_load_entropy_cpu.json"),
         "## Render endpoint under load, the bake of today's `fast` preset (issue 10, item 3)\n",
-        "the bake of the section \"the bake of today's `fast` preset\" above",
+        'the bake of the section "the bake of today\'s `fast` preset" above',
         "nothing else running",
     )
     svc = load("service_cpu.json")
