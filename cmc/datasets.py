@@ -314,8 +314,8 @@ WIDE_SCENES: dict[str, tuple[Layer, ...]] = {
 class SyntheticSplit:
     """A synthetic scene's input views and test views with exact images and depth.
 
-    ``test_kinds[k]`` says where test view k is: ``"halfway"`` (midpoint of two input cameras)
-    or ``"near"`` (beside one input camera).
+    ``test_kinds[k]`` says where test view k is: ``"halfway"`` (midpoint of two input cameras),
+    ``"near"`` (beside one input camera) or ``"beyond"`` (outside the triangle of the inputs).
     """
 
     name: str
@@ -331,8 +331,10 @@ def wide_baseline_split(
 
     The inputs sit at the corners of a triangle ``baseline`` wide (left, right, top), all looking
     at (0, 0, 4). Test views: the three midpoints of input pairs ("halfway", where a user
-    navigating between the photos is), and each input camera moved by 5 % of the baseline
-    ("near"). Every camera looks at (0, 0, 4); images are rendered exactly with depth.
+    navigating between the photos is), each input camera moved by 5 % of the baseline towards
+    the others ("near"), and each input camera moved by half the baseline away from the others
+    ("beyond": extrapolation, as LLFF test views often are). Every camera looks at (0, 0, 4);
+    images are rendered exactly with depth.
     """
     if name not in WIDE_SCENES:
         raise SceneError(f"unknown synthetic scene {name!r}; choose one of {', '.join(WIDE_SCENES)}")
@@ -342,6 +344,7 @@ def wide_baseline_split(
     halfway = [(inputs[i] + inputs[j]) / 2 for i, j in ((0, 1), (1, 2), (2, 0))]
     centroid = inputs.mean(0)
     near = [c + 0.05 * b * (centroid - c) / np.linalg.norm(centroid - c) for c in inputs]
+    beyond = [c - 0.5 * b * (centroid - c) / np.linalg.norm(centroid - c) for c in inputs]
     f = 0.5 * width / np.tan(np.radians(fov_deg) / 2)
     K = intrinsics(f, f, width / 2, height / 2)
 
@@ -349,11 +352,12 @@ def wide_baseline_split(
         poses = np.stack([look_at(c, (0.0, 0.0, 4.0)) for c in centers])
         return Cameras(np.tile(K, (len(poses), 1, 1)), poses, width, height)
 
-    train_cams, test_cams = cams(inputs), cams([*halfway, *near])
+    train_cams, test_cams = cams(inputs), cams([*halfway, *near, *beyond])
     images, depths = render_layers(layers, train_cams)
     nf = [0.9 * float(depths.min()), 1.1 * float(depths.max())]  # as SfM bounds would give
     t_images, t_depths = render_layers(layers, test_cams)
     train = Scene(images, train_cams, np.tile(nf, (3, 1)), [f"{name}_in{i}" for i in range(3)], depths)
-    test_names = [f"{name}_half{i}{(i + 1) % 3}" for i in range(3)] + [f"{name}_near{i}" for i in range(3)]
-    test = Scene(t_images, test_cams, np.tile(nf, (6, 1)), test_names, t_depths)
-    return SyntheticSplit(name, train, test, ["halfway"] * 3 + ["near"] * 3)
+    test_names = [f"{name}_{kind}{i}" for kind in ("near", "beyond") for i in range(3)]
+    test_names = [f"{name}_half{i}{(i + 1) % 3}" for i in range(3)] + test_names
+    test = Scene(t_images, test_cams, np.tile(nf, (9, 1)), test_names, t_depths)
+    return SyntheticSplit(name, train, test, ["halfway"] * 3 + ["near"] * 3 + ["beyond"] * 3)

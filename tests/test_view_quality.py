@@ -177,7 +177,8 @@ def test_tilted_layer_depth_is_the_ray_plane_intersection():
 
 def test_wide_baseline_split_cameras():
     """Halfway views sit at the midpoints of input pairs, near views 5 % of the baseline from an
-    input; every camera looks at (0, 0, 4); the exact depth matches the images' cameras."""
+    input towards the others, beyond views half the baseline from an input away from them; every
+    camera looks at (0, 0, 4); the exact depth matches the images' cameras."""
     from cmc.datasets import WIDE_SCENES, wide_baseline_split
 
     split = wide_baseline_split("cards", width=64, height=48)
@@ -187,10 +188,15 @@ def test_wide_baseline_split_cameras():
         np.testing.assert_allclose(c_test[k], (c_in[i] + c_in[j]) / 2, atol=1e-12)
     for k in range(3):
         assert np.linalg.norm(c_test[3 + k] - c_in[k]) == pytest.approx(0.05 * 0.6)
+        assert np.linalg.norm(c_test[6 + k] - c_in[k]) == pytest.approx(0.5 * 0.6)
+        # beyond: farther from the other inputs' centroid than the input itself; near: closer
+        others = np.delete(c_in, k, 0).mean(0)
+        dist = [np.linalg.norm(c - others) for c in (c_test[6 + k], c_in[k], c_test[3 + k])]
+        assert dist[0] > dist[1] > dist[2]
     for cams in (split.train.cameras, split.test.cameras):
         uv, _ = cams.project(np.array([[0.0, 0.0, 4.0]]))
         np.testing.assert_allclose(uv[:, 0], np.tile([32.0, 24.0], (len(cams), 1)), atol=1e-9)
-    assert split.test_kinds == ["halfway"] * 3 + ["near"] * 3
+    assert split.test_kinds == ["halfway"] * 3 + ["near"] * 3 + ["beyond"] * 3
     assert split.train.near < split.train.depths.min() and split.train.far > split.train.depths.max()
 
 
