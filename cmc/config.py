@@ -41,7 +41,6 @@ class LossConfig:
     # "cauchy" (occlusion-tolerant, on disparity; cmc.losses.robust_depth_consistency).
     depth_consistency: Literal["squared", "cauchy"] = "squared"
     lambda_alpha_entropy: float = 0.0  # visible alpha pushed to 0 or 1 (cmc.losses.alpha_entropy)
-    lambda_dssim: float = 0.0  # 1 - SSIM of input-view patches (cmc.losses.patch_dssim; needs ray_patch >= 5)
     recon_only_fraction: float = 0.3  # first fraction of steps uses L_MSE only (paper: 15/50 epochs)
     ac_geometry_only: bool = False  # L_ac moves alpha only, not colours (see bench/RESULTS.md)
 
@@ -53,7 +52,6 @@ class TrainConfig:
     preset: Preset = "fast"
     steps: int = 400
     rays_per_view: int = 2048  # rays drawn from every input view per step
-    ray_patch: int = 1  # input-view rays come in square patches of this side (1: independent pixels)
     unseen_rays: int = 2048  # rays drawn at each unseen pose per step
     unseen_poses: int = 1  # unseen poses per step
     unseen_jitter: float = 0.1  # std of the unseen-pose centre jitter, in mean baselines

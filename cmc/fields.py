@@ -98,7 +98,6 @@ class PyramidFieldConfig:
     scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane RGBA residual levels
     base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
     base_groups: int = 1  # base colours: one per group of adjacent planes (1 to num_planes)
-    alpha_detail_scale: float = 0.0  # > 0: an alpha-only per-plane level at this scale (0: none)
     stereo_init: bool = True  # start alpha from plane-sweep photo-consistency (cmc.planesweep)
     # Softmin temperature of that prior (mean abs colour difference). At 0.05 the prior was nearly
     # flat (training started from fog); at 0.01 it keeps the sweep's depth (bench/DIAGNOSIS.md).
@@ -158,9 +157,6 @@ class PyramidPlaneField(MPIField):
             elif init_alpha is None and n == len(cfg.scales) - 1:
                 lvl[:, 3] = alpha0[:, None, None]
             self.levels.append(nn.Parameter(lvl))
-        # Optional alpha-only level, finer than the RGBA levels, starting at zero (no change).
-        detail = torch.zeros(num_planes, 1, *size(cfg.alpha_detail_scale)) if cfg.alpha_detail_scale > 0 else None
-        self.alpha_detail = nn.Parameter(detail) if detail is not None else None
 
     def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
         D = g.shape[1]
@@ -178,8 +174,6 @@ class PyramidPlaneField(MPIField):
         logits = sum(F.grid_sample(lvl, grid, align_corners=False)[:, :, 0] for lvl in self.levels)  # [D, 4, R]
         color = logits[:, :3] + base  # type: ignore[index]
         alpha = logits[:, 3]  # type: ignore[index]
-        if self.alpha_detail is not None:
-            alpha = alpha + F.grid_sample(self.alpha_detail, grid, align_corners=False)[:, 0, 0]
         return torch.sigmoid(color.permute(2, 0, 1)), _opaque_back(torch.sigmoid(alpha.T))
 
     def smoothness(self) -> torch.Tensor:

@@ -18,7 +18,6 @@ from itertools import combinations
 
 import torch
 
-from cmc.metrics import gaussian_taps, local_ssim
 from cmc.rendering import RayOutput
 
 
@@ -32,29 +31,6 @@ def reconstruction_loss(outs: Sequence[RayOutput], target_rgb: torch.Tensor) -> 
     Shape: target_rgb [R, 3].
     """
     terms = [(_mask(o) * ((o.rgb - target_rgb) ** 2).sum(-1)).mean() for o in outs]
-    return torch.stack(terms).mean()
-
-
-def patch_dssim(outs: Sequence[RayOutput], target_rgb: torch.Tensor, patch: int) -> torch.Tensor:
-    """Structural dissimilarity ``1 - SSIM`` of each MPI's render of square pixel patches.
-
-    The rays are ``R = P * patch^2`` pixels of ``P`` patches, patch-major and row-major inside a
-    patch (:meth:`cmc.training.Trainer` draws them so); ``target_rgb`` is ``[R, 3]``. SSIM uses the
-    metric's constants under a Gaussian window of sigma 1.5 cut to ``patch - 2`` taps at most
-    (valid convolution inside each patch). A patch counts for an MPI only where that MPI covers all
-    of it. Mean over MPIs, patches, channels and SSIM-map pixels.
-
-    Per-pixel squared error does not see blur or a structure shifted by a pixel the way the eye
-    (and SSIM, LPIPS) does; this term compares local means, contrasts and correlation.
-    """
-    radius = min(int(3.5 * 1.5 + 0.5), (patch - 3) // 2)
-    taps = gaussian_taps(1.5, radius / 1.5)
-    target = target_rgb.reshape(-1, patch, patch, 3).permute(0, 3, 1, 2)
-    terms = []
-    for o in outs:
-        x = o.rgb.reshape(-1, patch, patch, 3).permute(0, 3, 1, 2)
-        covered = _mask(o).reshape(-1, patch * patch).amin(1)
-        terms.append((covered * (1 - local_ssim(x, target, taps)).mean((1, 2, 3))).mean())
     return torch.stack(terms).mean()
 
 

@@ -74,31 +74,12 @@ def psnr(a: ImageLike, b: ImageLike) -> float:
     return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
 
 
-def gaussian_taps(sigma: float, truncate: float) -> torch.Tensor:
+def _gaussian_taps(sigma: float, truncate: float) -> torch.Tensor:
     """scipy.ndimage's 1-D Gaussian: radius ``int(truncate * sigma + 0.5)``, weights summing to 1."""
     radius = int(truncate * sigma + 0.5)
     x = torch.arange(-radius, radius + 1, dtype=torch.float64)
     taps = torch.exp(-0.5 * (x / sigma) ** 2)
     return taps / taps.sum()
-
-
-def local_ssim(x: torch.Tensor, y: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
-    """The SSIM map of two image batches ``[B, C, H, W]`` (data range 1): local statistics under
-    the separable window ``taps`` (1-D, summing to 1), valid convolution, population covariance.
-    Returns ``[B, C, H - k + 1, W - k + 1]`` for ``k`` taps; differentiable (a training loss uses it)."""
-    b, c, h, w = x.shape
-    k = taps.numel()
-    # [B * 5 * C, 1, H, W]: the five quantities to average locally, one plane per channel.
-    planes = torch.stack([x, y, x * x, y * y, x * y], 1).reshape(-1, 1, h, w)
-    filtered = F.conv2d(planes, taps.to(x).view(1, 1, k, 1))
-    filtered = F.conv2d(filtered, taps.to(x).view(1, 1, 1, k))
-    mu_x, mu_y, e_xx, e_yy, e_xy = filtered.reshape(b, 5, c, h - k + 1, w - k + 1).unbind(1)
-    var_x = e_xx - mu_x * mu_x
-    var_y = e_yy - mu_y * mu_y
-    cov_xy = e_xy - mu_x * mu_y
-    c1 = _SSIM_K1**2  # (K1 * data_range)^2 with data_range = 1
-    c2 = _SSIM_K2**2
-    return ((2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)) / ((mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2))
 
 
 def ssim(a: ImageLike, b: ImageLike) -> float:
@@ -112,12 +93,25 @@ def ssim(a: ImageLike, b: ImageLike) -> float:
     """
     ta, tb = _check_pair(a, b)
     height, width, channels = ta.shape
-    taps = gaussian_taps(_SSIM_SIGMA, _SSIM_TRUNCATE)
+    taps = _gaussian_taps(_SSIM_SIGMA, _SSIM_TRUNCATE)
     win = taps.numel()
     if height < win or width < win:
         raise ValueError(f"ssim needs images of at least {win}x{win} pixels, got {height}x{width}")
 
-    ssim_map = local_ssim(ta.permute(2, 0, 1)[None], tb.permute(2, 0, 1)[None], taps)
+    # [5 * C, 1, H, W]: the five quantities to average locally, one plane per channel.
+    x = ta.permute(2, 0, 1)
+    y = tb.permute(2, 0, 1)
+    planes = torch.cat([x, y, x * x, y * y, x * y]).unsqueeze(1)
+    filtered = F.conv2d(planes, taps.view(1, 1, win, 1))
+    filtered = F.conv2d(filtered, taps.view(1, 1, 1, win))
+    mu_x, mu_y, e_xx, e_yy, e_xy = filtered.squeeze(1).split(channels)
+
+    var_x = e_xx - mu_x * mu_x
+    var_y = e_yy - mu_y * mu_y
+    cov_xy = e_xy - mu_x * mu_y
+    c1 = _SSIM_K1**2  # (K1 * data_range)^2 with data_range = 1
+    c2 = _SSIM_K2**2
+    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)) / ((mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2))
     # Mean per channel, then over channels (equal-size channels: one global mean is the same).
     return ssim_map.mean().item()
 

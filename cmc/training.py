@@ -25,7 +25,7 @@ import torch
 
 from cmc.config import TrainConfig
 from cmc.datasets import Scene, validate_scene
-from cmc.errors import CheckpointError, ConfigError
+from cmc.errors import CheckpointError
 from cmc.eta import TrainingETA
 from cmc.geometry import sample_virtual_pose
 from cmc.losses import (
@@ -33,7 +33,6 @@ from cmc.losses import (
     appearance_consistency,
     depth_consistency,
     distortion,
-    patch_dssim,
     reconstruction_loss,
     robust_depth_consistency,
 )
@@ -97,11 +96,6 @@ class Trainer:
 
     def __init__(self, scene: Scene, cfg: TrainConfig, device: str | torch.device = "cpu"):
         validate_scene(scene, min_views=2)
-        w, h = scene.cameras.width, scene.cameras.height
-        if not 1 <= cfg.ray_patch <= min(w, h):
-            raise ConfigError(f"ray_patch must be 1..{min(w, h)} (the image's shorter side), got {cfg.ray_patch}")
-        if cfg.loss.lambda_dssim > 0 and cfg.ray_patch < 5:
-            raise ConfigError(f"loss.lambda_dssim needs ray_patch >= 5 (SSIM over patches), got {cfg.ray_patch}")
         self.scene, self.cfg = scene, cfg
         self.device = torch.device(device)
         torch.manual_seed(cfg.seed)
@@ -115,23 +109,10 @@ class Trainer:
 
     # -- one step ---------------------------------------------------------------------------
 
-    def _random_pixels(self, gen: torch.Generator, n: int, patch: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
-        """Random pixels: flat indices [R] and centre coordinates [R, 2].
-
-        ``patch == 1``: R = n independent pixels. Else R = max(1, n // patch^2) * patch^2: square
-        patches of side ``patch`` inside the image, patch-major, row-major inside a patch.
-        """
+    def _random_pixels(self, gen: torch.Generator, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """n random pixel indices and their centre coordinates [n, 2]."""
         w, h = self.scene.cameras.width, self.scene.cameras.height
-        if patch == 1:
-            idx = torch.randint(0, w * h, (n,), generator=gen)
-        else:
-            count = max(1, n // patch**2)
-            x0 = torch.randint(0, w - patch + 1, (count, 1), generator=gen)
-            y0 = torch.randint(0, h - patch + 1, (count, 1), generator=gen)
-            offset = torch.arange(patch)
-            dx, dy = offset.repeat(patch), offset.repeat_interleave(patch)
-            idx = ((y0 + dy) * w + x0 + dx).reshape(-1)
-        idx = idx.to(self.device)
+        idx = torch.randint(0, w * h, (n,), generator=gen).to(self.device)
         uv = torch.stack([idx % w, idx // w], -1).float() + 0.5
         return idx, uv
 
@@ -145,7 +126,7 @@ class Trainer:
         # Target cameras of this step: every input view, then the unseen poses.
         groups, targets = [], []
         for j in range(len(self.scene)):
-            idx, uv = self._random_pixels(gen, cfg.rays_per_view, cfg.ray_patch)
+            idx, uv = self._random_pixels(gen, cfg.rays_per_view)
             groups.append((self.K[j], self.poses[j], uv))
             targets.append(self.images[j][idx])
         use_unseen = full and (lc.lambda_ac > 0 or lc.lambda_dc > 0)
@@ -160,11 +141,6 @@ class Trainer:
         n = len(self.scene)
         zero = torch.zeros((), device=self.device)
         losses = {"mse": torch.stack([reconstruction_loss(by_target[j], targets[j]) for j in range(n)]).mean()}
-        if lc.lambda_dssim > 0:
-            dssim = [patch_dssim(by_target[j], targets[j], cfg.ray_patch) for j in range(n)]
-            losses["dssim"] = torch.stack(dssim).mean()
-        else:
-            losses["dssim"] = zero
         if lc.depth_consistency == "cauchy":
             scale = 1.0 / (self.model.cfg.num_planes - 1)
             dc_loss = lambda o: robust_depth_consistency(o, self.scene.near, self.scene.far, scale)  # noqa: E731
@@ -190,7 +166,6 @@ class Trainer:
         losses["smooth"] = torch.stack(smooth).mean() if smooth else zero
         losses["total"] = (
             losses["mse"]
-            + lc.lambda_dssim * losses["dssim"]
             + lc.lambda_dc_input * losses["dc_input"]
             + lc.lambda_ac * losses["ac"]
             + lc.lambda_dc * losses["dc"]
