@@ -136,6 +136,23 @@ FERN_STEPS = [
         "`fast` now with a base per group of 4 planes instead of 12 (not adopted: the same scores, slower; the CPU was "
         "shared during this run, and its synthetic run was stopped)",
     ),
+    ("rerun3", "`fast` now, rerun in a later session (the same scores)"),
+    (
+        "jit05",
+        "`fast` now with unseen poses jittered by half a baseline instead of a tenth, so that the priors and "
+        "L_dc also reach poses outside the inputs, like view 16 (not adopted: +0.02 dB, noise)",
+    ),
+    ("up2", "`fast` now with two unseen poses per step instead of one (not adopted: the same scores, +14 % time)"),
+    (
+        "dssim01",
+        "`fast` now + 1 - SSIM of 8x8 input-view patches, 0.1 (not adopted: SSIM +0.011, PSNR +0.07, but "
+        "LPIPS-alex +0.016, LPIPS-vgg +0.005, renders 1.5x slower; code: commit f393765)",
+    ),
+    (
+        "adetail",
+        "`fast` now + a full-resolution alpha-only level per plane, retried with the entropy prior (not adopted: "
+        "+0.02 dB, LPIPS -0.002, 20 % more training; code: commit f393765)",
+    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
@@ -195,6 +212,10 @@ VQ_ABLATION = [
     ),
     ("view_quality_synthetic_entropy.json", ENTROPY_LABEL),
     (SYN_AFTER, NOW_LABEL),
+    (
+        "view_quality_synthetic_rerun_beyond.json",
+        "`fast` now, rerun in a later session with the beyond views (halfway and near: the same scores)",
+    ),
 ]
 
 
@@ -225,6 +246,8 @@ REMOVED_OPTIONS = {
     "patches_per_view": 8,
     "patch_size": 8,
     "patch_stride": 2,
+    "ray_patch": 1,
+    "loss.lambda_dssim": 0.0,
 }
 
 
