@@ -105,6 +105,12 @@ class PyramidFieldConfig:
     stereo_occlusion_aware: bool = True  # that prior takes the best-matching other view, not the mean
     stereo_edge_sigma: float = 0.1  # > 0: edge-aware cost aggregation (cmc.planesweep), colour scale
     stereo_extend_border: bool = True  # the margin starts with the image border's geometry (cmc.planesweep)
+    # > 0: behind a foreground outline, the farther surface within this fraction of the plane
+    # width continues as a hidden layer, in alpha and base colour (cmc.planesweep.layered_alpha,
+    # cmc.model.hidden_layer_colours); 0: off. Only where the sweep's most probable plane has a
+    # probability above stereo_hidden_confidence, at the texel and at the farther surface.
+    stereo_hidden_radius: float = 0.0
+    stereo_hidden_confidence: float = 0.0
 
 
 class PyramidPlaneField(MPIField):
@@ -119,7 +125,8 @@ class PyramidPlaneField(MPIField):
         num_planes: D.
         height, width: plane extent in reference-image pixels (image size times margin).
         cfg: level scales and base groups.
-        init_rgb: [3, h, w] initial base colour in [0, 1] (the reference photo, padded).
+        init_rgb: [3, h, w] initial base colour in [0, 1] (the reference photo, padded), or
+            [G, 3, h, w], one per base group.
         init_alpha: optional [D, h0, w0] initial alpha of each plane (any size; resampled to the
             finest level). Without it alpha starts at 1 / (D - k): equal composite weights.
     """
@@ -142,7 +149,8 @@ class PyramidPlaneField(MPIField):
 
         if not 1 <= cfg.base_groups <= num_planes:
             raise ConfigError(f"base_groups must be 1 to num_planes ({num_planes}), got {cfg.base_groups}")
-        base = F.interpolate(init_rgb[None].float(), size=size(cfg.base_scale), mode="bilinear", align_corners=False)
+        rgb = init_rgb.float().reshape(-1, *init_rgb.shape[-3:])  # [1 or G, 3, h, w]
+        base = F.interpolate(rgb, size=size(cfg.base_scale), mode="bilinear", align_corners=False)
         base = torch.logit(base.clamp(0.02, 0.98)).expand(cfg.base_groups, -1, -1, -1)
         self.base = nn.Parameter(base.contiguous())  # [G, 3, h, w]
         # Initial alpha 1 / (D - k), held by the coarsest level: every plane contributes equally.

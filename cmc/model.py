@@ -11,8 +11,39 @@ from cmc.config import ModelConfig
 from cmc.datasets import Scene
 from cmc.fields import MLPField, MPIField, PyramidPlaneField
 from cmc.geometry import texel_grid
-from cmc.planesweep import alpha_from_weights, plane_sweep_weights
+from cmc.planesweep import alpha_from_weights, layered_alpha, plane_sweep_weights
 from cmc.rendering import ImageOutput, MPIFrame, render_image
+
+
+def push_pull_fill(color: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Fill where ``weight`` is 0 with a smooth extrapolation of the known colours.
+
+    Shape: color [C, h, w], weight [1, h, w] in [0, 1] (how much of a texel is known). Known
+    texels keep their colour; the rest blend in the next coarser level of a 2x pyramid of
+    weighted averages (a coarse texel counts as known once it covers one known texel), so the
+    fill is the nearby colour, blurrier the farther it lies from what is known.
+    """
+    h, w = color.shape[-2:]
+    if min(h, w) <= 2:
+        mean = (color * weight).sum((1, 2), keepdim=True) / weight.sum().clamp_min(1e-8)
+        return weight * color + (1 - weight) * mean
+    pooled_w = F.avg_pool2d(weight[None], 2, ceil_mode=True)[0]
+    pooled_c = F.avg_pool2d((color * weight)[None], 2, ceil_mode=True)[0] / pooled_w.clamp_min(1e-8)
+    coarse = push_pull_fill(pooled_c, (4 * pooled_w).clamp(max=1))
+    coarse = F.interpolate(coarse[None], size=(h, w), mode="bilinear", align_corners=False)[0]
+    return weight * color + (1 - weight) * coarse
+
+
+def hidden_layer_colours(rgb: torch.Tensor, front: torch.Tensor, num_planes: int, groups: int) -> torch.Tensor:
+    """Initial base colour of each group of planes: the reference colour ``rgb`` [3, h, w] where
+    the visible surface (plane index ``front`` [h0, w0], 0 = nearest, any size; ``num_planes``
+    where the photo's colour should stay on every plane) lies in or behind the group, and a
+    push-pull fill from those texels where a nearer surface hides the group (the background
+    continued behind an occluder, not the occluder's colour). Returns [G, 3, h, w]; group i holds
+    planes [ceil(i D / G), ceil((i + 1) D / G)) (:class:`PyramidPlaneField`)."""
+    front = F.interpolate(front[None, None].float(), size=rgb.shape[-2:], mode="nearest")[0]
+    starts = [-(-i * num_planes // groups) for i in range(groups)]
+    return torch.stack([push_pull_fill(rgb, (front >= k0).float()) for k0 in starts])
 
 
 def padded_reference(image: np.ndarray, frame: MPIFrame) -> torch.Tensor:
@@ -59,7 +90,7 @@ class CMCModel(nn.Module):
             if cfg.field_type == "mlp":
                 fields.append(MLPField(cfg.num_planes, cfg.mlp))
             elif cfg.field_type == "pyramid":
-                init_alpha = None
+                init_alpha, rgb = None, padded_reference(scene.images[i], fr)
                 if cfg.pyramid.stereo_init:
                     h, w = (max(2, round(e * cfg.pyramid.scales[0])) for e in fr.extent)
                     probs = plane_sweep_weights(
@@ -73,8 +104,13 @@ class CMCModel(nn.Module):
                         edge_sigma=cfg.pyramid.stereo_edge_sigma or None,
                         extend_border=cfg.pyramid.stereo_extend_border,
                     )
-                    init_alpha = alpha_from_weights(probs)
-                rgb = padded_reference(scene.images[i], fr)
+                    if cfg.pyramid.stereo_hidden_radius > 0:
+                        radius = max(1, round(cfg.pyramid.stereo_hidden_radius * w))
+                        init_alpha, front, edge = layered_alpha(probs, radius, cfg.pyramid.stereo_hidden_confidence)
+                        front = torch.where(edge, front, cfg.num_planes)  # elsewhere the photo stays
+                        rgb = hidden_layer_colours(rgb, front, cfg.num_planes, cfg.pyramid.base_groups)
+                    else:
+                        init_alpha = alpha_from_weights(probs)
                 fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha))
             else:
                 raise ValueError(f"unknown field type {cfg.field_type!r}")
