@@ -7,6 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from cmc.cameras import pixel_rays
 from cmc.config import preset_config, with_settings
@@ -267,8 +268,45 @@ def test_a_base_colour_per_plane_group_gives_hidden_surfaces_their_own_texture()
     base = preset_config("fast", steps=200, rays_per_view=512, unseen_rays=256)
     errors = {}
     for groups in (1, 4):
-        cfg = with_settings(base, ["model.num_planes=24", f"model.pyramid.base_groups={groups}"])
+        # Without the hidden layers, which also start these surfaces with the background's colour
+        # (then 0.037 -> 0.030): this checks what the groups alone give.
+        settings = [f"model.pyramid.base_groups={groups}", "model.pyramid.stereo_hidden_radius=0"]
+        cfg = with_settings(base, ["model.num_planes=24", *settings])
         trainer = Trainer(split.train, cfg)
         trainer.fit()
         errors[groups] = _hidden_colour_error(trainer, behind_rgb, behind_depth, hidden)
     assert errors[4] < 0.8 * errors[1], errors  # 0.062 -> 0.047 when this was written
+
+
+def test_hidden_layers_put_the_wall_behind_the_outlines():
+    """``posts``: a view beside an input sees, past a post's or the card's outline, wall that the
+    input's photo shows only as post or card. Without hidden layers the MPI holds there whatever
+    the plane sweep's cost curve left behind the occluder (the photo's occluder colour on far
+    planes: a smear); with the wall continued behind confidently placed outlines
+    (``model.pyramid.stereo_hidden_radius``, ``stereo_hidden_confidence``) the wall next to the
+    outlines has its depth and the halfway and beyond views are better (when this was written,
+    84x63, 100 steps: depth error in that band 0.071 -> 0.045 halfway, 0.081 -> 0.053 beyond;
+    PSNR +0.58 dB halfway, +0.48 dB beyond, +0.17 dB near)."""
+    W2, H2 = 84, 63
+    split = wide_baseline_split("posts", W2, H2)
+    base = preset_config("fast", steps=100, rays_per_view=512, unseen_rays=256)
+    cams = split.test.cameras
+    scores = {}
+    for radius in (0.0, 0.05):
+        settings = ["model.num_planes=24", f"model.pyramid.stereo_hidden_radius={radius}"]
+        trainer = Trainer(split.train, with_settings(base, [*settings, "model.pyramid.stereo_hidden_confidence=0.5"]))
+        trainer.fit()
+        for k, kind in enumerate(split.test_kinds):
+            with torch.no_grad():
+                out = trainer.model.render(cams.K[k], cams.world_from_cam[k], W2, H2)
+            true = split.test.depths[k]
+            wall = torch.as_tensor(true > 0.95 * true.max())
+            # The wall within 5 pixels of an occluder's outline in this view.
+            band = (wall & (F.max_pool2d((~wall).float()[None, None], 11, 1, 5)[0, 0] > 0)).numpy()
+            err = np.abs(out.depth.numpy() - true)[band] / true[band]
+            scores.setdefault((radius, kind), []).append((psnr(out.rgb.numpy(), split.test.images[k]), err.mean()))
+    mean = {key: np.mean(v, 0) for key, v in scores.items()}
+    for kind in ("halfway", "beyond"):
+        (psnr0, err0), (psnr1, err1) = mean[(0.0, kind)], mean[(0.05, kind)]
+        assert psnr1 > psnr0 + 0.25 and err1 < 0.8 * err0, (kind, mean)
+    assert mean[(0.05, "near")][0] > mean[(0.0, "near")][0] - 0.1, mean  # near views not worse
