@@ -108,9 +108,9 @@ def test_demo_runs_end_to_end(tmp_path):
     assert not list((tmp_path / "demo").rglob("*.pt"))
 
 
-def test_bench_synthetic_reports_halfway_and_near_views(tmp_path, capsys):
-    """A short run of the wide-baseline benchmark on one scene: both kinds of view scored, with
-    depth error, and one diagnostic sheet per test view (3 rows of tiles at 252x189)."""
+def test_bench_synthetic_reports_halfway_near_and_beyond_views(tmp_path, capsys):
+    """A short run of the wide-baseline benchmark on one scene: the three kinds of view scored,
+    with depth error, and one diagnostic sheet per test view (3 rows of tiles at 252x189)."""
     from tests.helpers import SHARED_DIR
 
     weights = SHARED_DIR / "weights"
@@ -123,10 +123,12 @@ def test_bench_synthetic_reports_halfway_and_near_views(tmp_path, capsys):
     report = json.loads(out.read_text())
     assert report["config"]["model"]["num_planes"] == 8
     (scene,) = report["scenes"]
-    assert [v["kind"] for v in scene["views"]] == ["halfway"] * 3 + ["near"] * 3
-    for kind in ("halfway", "near"):
+    assert [v["kind"] for v in scene["views"]] == ["halfway"] * 3 + ["near"] * 3 + ["beyond"] * 3
+    for kind in ("halfway", "near", "beyond"):
         assert 10 < scene[kind]["psnr"] < 50 and 0 <= scene[kind]["depth_rel_error"] < 1
-    assert "| cards | halfway |" in out.with_suffix(".md").read_text()
+    table = out.with_suffix(".md").read_text()
+    assert "| cards | halfway |" in table and "| cards | beyond |" in table
+    assert (tmp_path / "runs" / "fast" / "cards" / "cards_beyond2_sheet.png").exists()
     sheet = load_image(tmp_path / "runs" / "fast" / "cards" / "cards_half01_sheet.png")
     assert sheet.shape == (3 * 189, 5 * 252, 3)
 
