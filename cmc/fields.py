@@ -113,6 +113,12 @@ class PyramidFieldConfig:
     stereo_hidden_confidence: float = 0.0
 
 
+def plane_group_bounds(num_planes: int, groups: int) -> list[int]:
+    """First plane of each of ``groups`` groups of adjacent planes, then ``num_planes``: group i
+    holds planes [ceil(i D / G), ceil((i + 1) D / G)), so plane k is in group k * G // D."""
+    return [-(-i * num_planes // groups) for i in range(groups + 1)]
+
+
 class PyramidPlaneField(MPIField):
     """Explicit per-plane textures; see the module docstring.
 
@@ -169,8 +175,7 @@ class PyramidPlaneField(MPIField):
     def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
         D = g.shape[1]
         grid = g.permute(1, 0, 2)[:, None]  # [D, 1, R, 2]
-        G = len(self.base)  # plane k takes base k * G // D: planes [ceil(i D / G), ceil((i + 1) D / G))
-        bounds = [-(-i * D // G) for i in range(G + 1)]
+        bounds = plane_group_bounds(D, len(self.base))  # plane k takes base k * G // D
         base = torch.cat(
             [
                 F.grid_sample(self.base[i : i + 1], grid[k0:k1].reshape(1, 1, -1, 2), align_corners=False)

@@ -9,7 +9,7 @@ from torch import nn
 
 from cmc.config import ModelConfig
 from cmc.datasets import Scene
-from cmc.fields import MLPField, MPIField, PyramidPlaneField
+from cmc.fields import MLPField, MPIField, PyramidPlaneField, plane_group_bounds
 from cmc.geometry import texel_grid
 from cmc.planesweep import alpha_from_weights, layered_alpha, plane_sweep_weights
 from cmc.rendering import ImageOutput, MPIFrame, render_image
@@ -39,10 +39,10 @@ def hidden_layer_colours(rgb: torch.Tensor, front: torch.Tensor, num_planes: int
     the visible surface (plane index ``front`` [h0, w0], 0 = nearest, any size; ``num_planes``
     where the photo's colour should stay on every plane) lies in or behind the group, and a
     push-pull fill from those texels where a nearer surface hides the group (the background
-    continued behind an occluder, not the occluder's colour). Returns [G, 3, h, w]; group i holds
-    planes [ceil(i D / G), ceil((i + 1) D / G)) (:class:`PyramidPlaneField`)."""
+    continued behind an occluder, not the occluder's colour). Returns [G, 3, h, w], the groups of
+    :func:`cmc.fields.plane_group_bounds`."""
     front = F.interpolate(front[None, None].float(), size=rgb.shape[-2:], mode="nearest")[0]
-    starts = [-(-i * num_planes // groups) for i in range(groups)]
+    starts = plane_group_bounds(num_planes, groups)[:-1]
     return torch.stack([push_pull_fill(rgb, (front >= k0).float()) for k0 in starts])
 
 

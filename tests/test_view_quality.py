@@ -293,8 +293,8 @@ def test_hidden_layers_put_the_wall_behind_the_outlines():
     cams = split.test.cameras
     scores = {}
     for radius in (0.0, 0.05):
-        settings = ["model.num_planes=24", f"model.pyramid.stereo_hidden_radius={radius}"]
-        trainer = Trainer(split.train, with_settings(base, [*settings, "model.pyramid.stereo_hidden_confidence=0.5"]))
+        settings = [f"model.pyramid.stereo_hidden_radius={radius}", "model.pyramid.stereo_hidden_confidence=0.5"]
+        trainer = Trainer(split.train, with_settings(base, ["model.num_planes=24", *settings]))
         trainer.fit()
         for k, kind in enumerate(split.test_kinds):
             with torch.no_grad():
