@@ -116,6 +116,14 @@ class Trainer:
         uv = torch.stack([idx % w, idx // w], -1).float() + 0.5
         return idx, uv
 
+    def _colour_grads(self, mpi: int) -> list[float | torch.Tensor]:
+        """Factor on the colour gradients of MPI ``mpi`` from each input view's rays."""
+        s: float | torch.Tensor = self.cfg.loss.cross_view_colour
+        field = self.model.fields[mpi]
+        if s != 1.0 and self.cfg.loss.cross_view_visibility and hasattr(field, "reference_transmittance"):
+            s = 1.0 - (1.0 - s) * field.reference_transmittance()
+        return [1.0 if j == mpi else s for j in range(len(self.scene))]
+
     def compute_losses(self, step: int) -> dict[str, torch.Tensor]:
         """All loss terms of step ``step`` (unweighted) and their weighted sum ``total``."""
         cfg, lc = self.cfg, self.cfg.loss
@@ -135,8 +143,11 @@ class Trainer:
             P = torch.as_tensor(pose, dtype=torch.float32, device=self.device)
             groups.append((self.K[0], P, self._random_pixels(gen, cfg.unseen_rays)[1]))
         # per_mpi[i][t]: MPI i's render of target t (one field query per MPI).
-        color_grad = [True] * len(self.scene) + [not lc.ac_geometry_only] * (len(groups) - len(self.scene))
-        per_mpi = [render_ray_groups(f, fr, groups, color_grad) for f, fr in zip(fields, frames, strict=True)]
+        unseen_grad = [0.0 if lc.ac_geometry_only else 1.0] * (len(groups) - len(self.scene))
+        per_mpi = [
+            render_ray_groups(f, fr, groups, self._colour_grads(i) + unseen_grad)
+            for i, (f, fr) in enumerate(zip(fields, frames, strict=True))
+        ]
         by_target = list(zip(*per_mpi, strict=True))
         n = len(self.scene)
         zero = torch.zeros((), device=self.device)

@@ -395,22 +395,29 @@ def test_render_image_coverage_zero_outside_planes() -> None:
     assert float(out.acc.abs().max()) == 0 and float(out.rgb.abs().max()) == 0
 
 
-def test_color_grad_false_sends_gradients_to_alpha_only() -> None:
-    """render_ray_groups(color_grad=[False]): the composite still depends on colour, but only the
-    alpha channels of the field receive gradients (used by LossConfig.ac_geometry_only)."""
+def test_color_grad_scales_the_gradients_to_colour_only() -> None:
+    """render_ray_groups(color_grad=[f]): the composite does not depend on f; the gradients of the
+    field's colours are f times those at f = 1 (False: none, used by LossConfig.ac_geometry_only),
+    the alpha gradients unchanged (LossConfig.cross_view_colour)."""
     field, frame = random_pyramid(7, torch.float32), make_frame()
     K, pose = target_cameras()["moved"]
     uv = target_uv(torch.float32)
     args = (torch.as_tensor(K, dtype=torch.float32), torch.as_tensor(pose, dtype=torch.float32), uv)
-    for flag in (True, False):
+    grads = {}
+    for flag in (True, 0.25, False):
         field.zero_grad()
         (out,) = render_ray_groups(field, frame, [args], color_grad=[flag])
         out.rgb.sum().backward()
-        colour_grad = float(field.levels[0].grad[:, :3].abs().sum()) + float(
-            0 if field.base.grad is None else field.base.grad.abs().sum()
-        )
-        assert float(field.levels[0].grad[:, 3].abs().sum()) > 0
-        assert (colour_grad > 0) == flag
+        base = torch.zeros_like(field.base) if field.base.grad is None else field.base.grad.clone()
+        grads[flag] = (out.rgb.detach(), field.levels[0].grad[:, :3].clone(), base, field.levels[0].grad[:, 3].clone())
+    rgb1, colour1, base1, alpha1 = grads[True]
+    assert float(colour1.abs().sum()) > 0 and float(base1.abs().sum()) > 0 and float(alpha1.abs().sum()) > 0
+    for flag, f in ((0.25, 0.25), (False, 0.0)):
+        rgb, colour, base, alpha = grads[flag]
+        torch.testing.assert_close(rgb, rgb1)
+        torch.testing.assert_close(colour, f * colour1)
+        torch.testing.assert_close(base, f * base1)
+        torch.testing.assert_close(alpha, alpha1)
 
 
 @pytest.mark.parametrize("num_planes", [8, 7])
