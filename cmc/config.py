@@ -44,7 +44,6 @@ class LossConfig:
     recon_only_fraction: float = 0.3  # first fraction of steps uses L_MSE only (paper: 15/50 epochs)
     ac_geometry_only: bool = False  # L_ac moves alpha only, not colours (see bench/RESULTS.md)
     cross_view_colour: float = 1.0  # factor on the colour gradients of MPI i from input view j != i
-    cross_view_visibility: bool = False  # ... only on what MPI i's camera sees or sees through (1 behind)
 
 
 @dataclass

@@ -189,17 +189,6 @@ class PyramidPlaneField(MPIField):
         alpha = logits[:, 3]  # type: ignore[index]
         return torch.sigmoid(color.permute(2, 0, 1)), _opaque_back(torch.sigmoid(alpha.T))
 
-    @torch.no_grad()
-    def reference_transmittance(self) -> torch.Tensor:
-        """[D, h, w] transmittance reaching every texel of every plane along the reference
-        camera's own rays (which cross all planes at the same grid point), at the finest alpha
-        level's resolution: 1 where the reference photo sees the texel or the space in front of
-        it, 0 behind the surface it shows."""
-        size = self.levels[0].shape[-2:]
-        logit = sum(F.interpolate(lvl[:, 3:], size=size, mode="bilinear", align_corners=False)[:, 0] for lvl in self.levels)
-        alpha = torch.sigmoid(logit)  # type: ignore[arg-type]
-        return torch.cumprod(torch.cat([torch.ones_like(alpha[:1]), 1 - alpha[:-1]]), 0)
-
     def smoothness(self) -> torch.Tensor:
         """Mean squared finite difference of the finest level's alpha (a total-variation prior)."""
         a = self.levels[0][:, 3]

@@ -134,7 +134,7 @@ def render_ray_groups(
     field: MPIField,
     frame: MPIFrame,
     groups: Sequence[tuple[torch.Tensor, torch.Tensor, torch.Tensor]],
-    color_grad: Sequence[bool | float | torch.Tensor] | None = None,
+    color_grad: Sequence[bool | float] | None = None,
 ) -> list[RayOutput]:
     """Render rays of several target cameras from one MPI with a single field query.
 
@@ -145,8 +145,7 @@ def render_ray_groups(
         groups: (K_tgt [3, 3], world_from_tgt [4, 4], uv [R_g, 2]) per target camera.
         color_grad: per group, the factor on the gradients that flow to the field's colours
             (default 1 for all; True is 1, False is 0: only alpha, the geometry, receives the
-            group's gradients), or a [D, h, w] map of factors over the planes' extent, sampled
-            at each crossing. The rendered values do not depend on it.
+            group's gradients). The rendered values do not depend on it.
     Returns:
         one RayOutput per group.
     """
@@ -169,13 +168,8 @@ def render_ray_groups(
     for g, (inside, lam) in enumerate(zip(insides, lams, strict=True)):
         sl = slice(start, start + len(lam))
         start += len(lam)
-        scale = 1.0 if color_grad is None else color_grad[g]
-        if isinstance(scale, torch.Tensor):  # [D, h, w] -> [R_g, D, 1] at the crossings
-            grid = gs[g].permute(1, 0, 2)[:, None]  # [D, 1, R_g, 2]
-            scale = F.grid_sample(scale[:, None], grid, align_corners=False)[:, 0, 0].T[..., None]
-        rgb_g = rgb[sl] if scale is True or (not isinstance(scale, torch.Tensor) and scale == 1.0) else (
-            rgb[sl].detach() + scale * (rgb[sl] - rgb[sl].detach())
-        )
+        scale = 1.0 if color_grad is None else float(color_grad[g])
+        rgb_g = rgb[sl] if scale == 1.0 else rgb[sl].detach() + scale * (rgb[sl] - rgb[sl].detach())
         outs.append(composite(rgb_g, alpha[sl] * inside, torch.where(inside, lam, torch.zeros_like(lam))))
     return outs
 

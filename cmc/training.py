@@ -116,12 +116,9 @@ class Trainer:
         uv = torch.stack([idx % w, idx // w], -1).float() + 0.5
         return idx, uv
 
-    def _colour_grads(self, mpi: int) -> list[float | torch.Tensor]:
+    def _colour_grads(self, mpi: int) -> list[float]:
         """Factor on the colour gradients of MPI ``mpi`` from each input view's rays."""
-        s: float | torch.Tensor = self.cfg.loss.cross_view_colour
-        field = self.model.fields[mpi]
-        if s != 1.0 and self.cfg.loss.cross_view_visibility and hasattr(field, "reference_transmittance"):
-            s = 1.0 - (1.0 - s) * field.reference_transmittance()
+        s = self.cfg.loss.cross_view_colour
         return [1.0 if j == mpi else s for j in range(len(self.scene))]
 
     def compute_losses(self, step: int) -> dict[str, torch.Tensor]:

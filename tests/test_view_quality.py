@@ -310,3 +310,30 @@ def test_hidden_layers_put_the_wall_behind_the_outlines():
         (psnr0, err0), (psnr1, err1) = mean[(0.0, kind)], mean[(0.05, kind)]
         assert psnr1 > psnr0 + 0.25 and err1 < 0.8 * err0, (kind, mean)
     assert mean[(0.05, "near")][0] > mean[(0.0, "near")][0] - 0.1, mean  # near views not worse
+
+
+def test_cross_view_colour_factor_keeps_each_mpi_on_its_photo():
+    """``loss.cross_view_colour``: the colour gradients that MPI i gets from input view j != i are
+    scaled down, so its colours stay those of its own photo (its geometry still answers to every
+    view). Each MPI then reproduces its own photo more sharply, and the views near the inputs,
+    drawn mostly from the nearest MPI, are better; the halfway views do not suffer (when this was
+    written, ``posts`` at 84x63, 100 steps, factor 1 -> 0.25: own photo +2.0 to +2.2 dB, near views
+    26.08 -> 26.51 dB, halfway 24.82 -> 24.75 dB)."""
+    W2, H2 = 84, 63
+    split = wide_baseline_split("posts", W2, H2)
+    base = preset_config("fast", steps=100, rays_per_view=512, unseen_rays=256)
+    own, views = {}, {}
+    for factor in (1.0, 0.25):
+        trainer = Trainer(split.train, with_settings(base, ["model.num_planes=24", f"loss.cross_view_colour={factor}"]))
+        trainer.fit()
+        cams, tests = split.train.cameras, split.test.cameras
+        with torch.no_grad():
+            own_renders = [trainer.model.render(cams.K[i], cams.world_from_cam[i], W2, H2, i) for i in range(3)]
+            own[factor] = [psnr(out.rgb.numpy(), split.train.images[i]) for i, out in enumerate(own_renders)]
+            for k, kind in enumerate(split.test_kinds):
+                out = trainer.model.render(tests.K[k], tests.world_from_cam[k], W2, H2)
+                views.setdefault((factor, kind), []).append(psnr(out.rgb.numpy(), split.test.images[k]))
+    assert min(np.subtract(own[0.25], own[1.0])) > 1.0, own
+    mean = {key: float(np.mean(v)) for key, v in views.items()}
+    assert mean[(0.25, "near")] > mean[(1.0, "near")] + 0.2, mean
+    assert mean[(0.25, "halfway")] > mean[(1.0, "halfway")] - 0.2, mean
