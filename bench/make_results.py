@@ -190,7 +190,7 @@ FERN_STEPS = [
         "`fast` now with the cross-view colour gradients off (0) in front of and on the surface the reference "
         "camera sees, full behind it, gated by the transmittance of its own rays (not adopted: LPIPS-vgg 0.263; "
         "fern's alpha is spread over many planes, so the gate let most of the cross-view colour through; the "
-        "option was removed; code: commit 34e24aa)",
+        "option was removed; code: commit f1c7dbb)",
     ),
     (
         "cvc01_align",
