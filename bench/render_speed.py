@@ -20,9 +20,10 @@ measurements time the same textures.
 ``--before OLD.py`` also times an older renderer, alternating with the current one render by
 render, so that both see the same machine state (a shared CPU drifts by tens of percent within
 minutes): either a version of :mod:`cmc.rendering` (e.g. ``git show HEAD~1:cmc/rendering.py >
-/tmp/old.py``; its ``render_image`` over the same loaded scene) or of :mod:`cmc.texture_kernel`
-from before it took packed textures (its ``render_baked_mpi`` per MPI, blended by
-:func:`cmc.rendering.blend`). The report then has a ``before`` block and the agreement of the two
+/tmp/old.py``; its ``render_image`` over the same loaded scene) or of :mod:`cmc.texture_kernel`:
+one that takes packed textures (its ``PackedTextures`` built from the loaded textures, its
+``render`` on ``--threads``), or one from before that (its ``render_baked_mpi`` per MPI, blended
+by :func:`cmc.rendering.blend`). The report then has a ``before`` block and the agreement of the two
 renders (colour PSNR, depth max relative error over covered pixels). Every report also has the
 agreement of the current renderer with the torch renderer (:func:`cmc.rendering.render_image`,
 untimed): the quality target.
@@ -139,7 +140,20 @@ def main() -> None:
     renderers = {"after": lambda K, pose, w, h: baked.render(K, pose, w, h, threads=args.threads)}
     if args.before:
         old = load_rendering(args.before)
-        if hasattr(old, "render_baked_mpi"):  # a texture_kernel: 8-bit textures per MPI, then the blend
+        if hasattr(old, "PackedTextures"):  # a texture_kernel of packed textures: its own copy of them
+            old_packed = old.PackedTextures.pack([np.ascontiguousarray(t) for t in baked.textures])
+            old_geometry = [old.MPIGeometry.from_frame(f) for f in baked.frames]
+
+            def render_before(K, pose, w, h):
+                P_t = torch.as_tensor(np.asarray(pose), dtype=torch.float32)
+                weights, use = blend_selection(baked.frames, P_t)
+                rgb, depth, acc = old.render(
+                    old_packed, old_geometry, weights.numpy(), use, K, pose, w, h, threads=args.threads
+                )
+                return ImageOutput(torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(acc))
+
+            renderers["before"] = render_before
+        elif hasattr(old, "render_baked_mpi"):  # a texture_kernel: 8-bit textures per MPI, then the blend
             textures = [np.ascontiguousarray(t) for t in baked.textures]
             occupancy = [old.occupancy(t) for t in textures]
 

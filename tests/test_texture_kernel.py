@@ -12,7 +12,7 @@ from cmc._reference import render_texture_image_reference
 from cmc.baking import BakedScene
 from cmc.cameras import look_at
 from cmc.rendering import MPIFrame, blend
-from cmc.texture_kernel import TILE, MPIGeometry, PackedTextures, occupancy, render
+from cmc.texture_kernel import COLS, ROWS, TILE, MPIGeometry, PackedTextures, occupancy, occupied_tiles, reach, render
 
 W, H, D = 40, 30, 6
 K = np.array([[36.0, 0, W / 2], [0, 36.0, H / 2], [0, 0, 1]])
@@ -39,20 +39,20 @@ def _premultiplied(tex: np.ndarray) -> torch.Tensor:
     return torch.cat([rgba[:, :3] * rgba[:, 3:], rgba[:, 3:]], 1)
 
 
-def _twin(textures: list[np.ndarray], frames: list[MPIFrame], weights: np.ndarray, P: np.ndarray):
+def _twin(textures: list[np.ndarray], frames: list[MPIFrame], weights: np.ndarray, P: np.ndarray, size=(W, H)):
     """The slow per-plane twin of every MPI, blended as cmc.rendering.render_image blends them."""
     Kt, Pt = torch.as_tensor(K, dtype=torch.float32), torch.as_tensor(P, dtype=torch.float32)
     outs = [
-        render_texture_image_reference(_premultiplied(t), f, Kt, Pt, W, H)
+        render_texture_image_reference(_premultiplied(t), f, Kt, Pt, *size)
         for t, f in zip(textures, frames, strict=True)
     ]
     return blend(outs, torch.as_tensor(weights, dtype=torch.float32))
 
 
-def _fast(textures, frames, weights, P, min_transmittance=0.0, threads=1, packed=None):
+def _fast(textures, frames, weights, P, min_transmittance=0.0, threads=1, packed=None, size=(W, H)):
     packed = packed or PackedTextures.pack(textures)
     geometry = [MPIGeometry.from_frame(f) for f in frames]
-    return render(packed, geometry, weights, range(len(textures)), K, P, W, H, min_transmittance, threads)
+    return render(packed, geometry, weights, range(len(textures)), K, P, *size, min_transmittance, threads)
 
 
 def _assert_close(fast, slow):
@@ -106,6 +106,56 @@ def test_kernel_blends_mpis_of_different_sizes_as_the_twin(camera):
     _assert_close(one, _twin(textures, frames, weights, P))
 
 
+@pytest.mark.parametrize("size", [(W - 3, H - 1), (COLS + 1, ROWS - 3), (3, 2)])
+@pytest.mark.parametrize("camera", ["reference", "outside the capture", "behind all planes, looking back"])
+def test_kernel_equals_the_slow_twin_at_sizes_that_leave_blocks_part_full(camera, size):
+    """Images whose width is no multiple of the block's columns nor height of the band's rows
+    (the last blocks of a row and the last band hold fewer rays) render as the twin."""
+    tex = _textures(np.random.default_rng(5))
+    P = CAMERAS[camera]
+    _assert_close(_fast([tex], [FRAME], np.ones(1), P, size=size), _twin([tex], [FRAME], np.ones(1), P, size))
+
+
+@pytest.mark.parametrize("camera", list(CAMERAS))
+def test_skipping_empty_blocks_and_transparent_samples_is_exact(camera):
+    """With every tile marked occupied and every texel reaching alpha (nothing skipped but opaque
+    rays) the render is the same to the bit: on mostly empty planes, at cameras whose blocks
+    straddle the planes' edges (outside the capture) or see the planes edge-on or from behind."""
+    tex = _textures(np.random.default_rng(6))
+    tex[2] = 0  # a plane with no alpha at all
+    packed = PackedTextures.pack([tex])
+    everything = replace(
+        packed, reach=np.full_like(packed.reach, 255), sat=occupied_tiles(np.ones_like(occupancy(tex))).reshape(-1)
+    )
+    P = CAMERAS[camera]
+    for min_transmittance in (0.0, 1e-4):
+        a = _fast([tex], [FRAME], np.ones(1), P, min_transmittance, packed=packed)
+        b = _fast([tex], [FRAME], np.ones(1), P, min_transmittance, packed=everything)
+        assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def test_reach_bits_mark_samples_that_can_have_alpha():
+    alpha = np.zeros((1, 4, 5), np.uint8)
+    alpha[0, 2, 3] = 1
+    # A sample reaches texel (2, 3) from its top-left tap at (1..2, 2..3).
+    assert np.argwhere(reach(alpha)[0]).tolist() == [[1, 2], [1, 3], [2, 2], [2, 3]]
+    rng = np.random.default_rng(7)
+    textures = [_textures(rng), rng.integers(0, 256, size=(3, 5, 7, 4), dtype=np.uint8)]
+    packed = PackedTextures.pack(textures)
+    bits = np.unpackbits(packed.reach, bitorder="little").astype(bool)
+    for i, tex in enumerate(textures):
+        D, h, w = tex.shape[:3]
+        framed = np.zeros((D, h + 2, w + 2), np.uint8)
+        framed[:, 1:-1, 1:-1] = tex[..., 3]
+        start = int(packed.base[i, 0])
+        assert start % 8 == 0  # each MPI's bits start a byte
+        assert np.array_equal(bits[start : start + framed.size], reach(framed).reshape(-1))
+    # The summed-area table counts the occupied tiles of any rectangle.
+    sat = occupied_tiles(occupancy(textures[0]))
+    occ = occupancy(textures[0])
+    assert sat[1, 3, 4] == occ[1, :3, :4].sum() and sat[0, -1, -1] == occ[0].sum()
+
+
 def test_occupancy_marks_tiles_a_bilinear_tap_can_reach():
     tex = np.zeros((2, 3 * TILE - 2, 3 * TILE - 2, 4), dtype=np.uint8)  # framed: 3 x 3 tiles
     tex[0, TILE - 1, TILE - 1] = 200, 100, 50, 9  # framed texel (TILE, TILE): the middle tile's first
@@ -113,11 +163,13 @@ def test_occupancy_marks_tiles_a_bilinear_tap_can_reach():
     assert occ.shape == (2, 3, 3) and not occ[1].any()  # the second plane is empty
     # A sample whose top-left tap is one texel up or left of it (in the tiles before) reaches it.
     assert occ[0].tolist() == [[1, 1, 0], [1, 1, 0], [0, 0, 0]]
-    # Skipping empty tiles is exact: the kernel with the real map equals it with every tile marked.
+    # Skipping empty tiles and texels is exact: the kernel with the real maps equals it with every
+    # tile and texel marked.
     frame = MPIFrame.create(K, np.eye(4), 2.0, 8.0, 2, 3 * TILE - 2, 3 * TILE - 2, 1.0, "cpu")
     P = look_at(np.array([0.05, 0.03, 0.0]), np.array([0.0, 0.0, 4.0]))
     packed = PackedTextures.pack([tex])
-    every = replace(packed, occ=np.ones_like(packed.occ))
+    full = occupied_tiles(np.ones_like(occ)).reshape(-1)
+    every = replace(packed, reach=np.full_like(packed.reach, 255), sat=full)
     a = _fast([tex], [frame], np.ones(1), P, packed=packed)
     b = _fast([tex], [frame], np.ones(1), P, packed=every)
     assert a[2].max() > 0 and all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
