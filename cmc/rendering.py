@@ -169,7 +169,12 @@ def render_ray_groups(
         sl = slice(start, start + len(lam))
         start += len(lam)
         scale = 1.0 if color_grad is None else float(color_grad[g])
-        rgb_g = rgb[sl] if scale == 1.0 else rgb[sl].detach() + scale * (rgb[sl] - rgb[sl].detach())
+        if scale == 1.0:
+            rgb_g = rgb[sl]
+        elif scale == 0.0:  # no colour gradients: no backward pass through the colours at all
+            rgb_g = rgb[sl].detach()
+        else:
+            rgb_g = rgb[sl].detach() + scale * (rgb[sl] - rgb[sl].detach())
         outs.append(composite(rgb_g, alpha[sl] * inside, torch.where(inside, lam, torch.zeros_like(lam))))
     return outs
 
