@@ -13,8 +13,8 @@ Stages that have not run yet are estimated from a reference run until they measu
 speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2-core CPU.
 
 * :data:`REFERENCE_POSES_S`: structure from motion, 12.7 s (median of 3, bench/poses_fern.md).
-* :data:`REFERENCE_STEP_S`: a training step, plane sweep included, 0.41 s (400 steps in 165 s,
-  bench/view_quality_fern_after.json). A GPU trains much faster: until training has run a step,
+* :data:`REFERENCE_STEP_S`: a training step, plane sweep included, 0.96 s (400 steps of 4096
+  rays per view in 384 s, bench/view_quality_fern_rays.json). A GPU trains much faster: until training has run a step,
   a job's estimate is pessimistic there.
 * Baking, in training steps (:func:`bake_steps`): modelled, not measured; the bake evaluates
   every texel of every plane once, a step its rays' samples forward and backward.
@@ -29,10 +29,12 @@ if TYPE_CHECKING:
     from cmc.config import TrainConfig
 
 REFERENCE_POSES_S = 12.7
-REFERENCE_STEP_S = 0.41
-# TrainConfig.steps of each preset (cmc.config.preset_config, which needs torch to import; the
-# pose-estimation worker does not load it). tests/test_eta.py checks that the two agree.
+REFERENCE_STEP_S = 0.96
+# TrainConfig.steps of each preset and the fast preset's rays_per_view (cmc.config.preset_config
+# needs torch to import; the pose-estimation worker does not load it). tests/test_eta.py checks
+# that they agree.
 PRESET_STEPS = {"fast": 400, "paper": 20000}
+FAST_RAYS_PER_VIEW = 4096
 
 
 def first_full_step(cfg: TrainConfig) -> int:
@@ -54,14 +56,14 @@ def bake_steps(width: int, height: int, margin: float, num_views: int, rays_per_
 
     Per plane of every MPI the bake evaluates the field once at each of ``margin^2 * W * H``
     texels; a step evaluates it at ``num_views * rays_per_view`` samples, forward and backward
-    (about three forward passes). Fern at 504x378, fast preset: about 15 steps.
+    (about three forward passes). Fern at 504x378, fast preset (4096 rays): about 7 steps.
     """
     return margin**2 * width * height / (3.0 * num_views * rays_per_view)
 
 
 def reference_training_s(steps: int) -> float:
     """Seconds to train ``steps`` steps and bake, at the reference's speed (fern, ``fast``)."""
-    return (steps + bake_steps(504, 378, 1.2, 3, 2048)) * REFERENCE_STEP_S
+    return (steps + bake_steps(504, 378, 1.2, 3, FAST_RAYS_PER_VIEW)) * REFERENCE_STEP_S
 
 
 class TrainingETA:

@@ -10,7 +10,7 @@ import pytest
 import cmc.training
 from cmc.config import PRESETS, preset_config
 from cmc.datasets import synthetic_scene
-from cmc.eta import PRESET_STEPS, TrainingETA, bake_steps, first_full_step, full_cost_ratio
+from cmc.eta import FAST_RAYS_PER_VIEW, PRESET_STEPS, TrainingETA, bake_steps, first_full_step, full_cost_ratio
 from cmc.training import Trainer
 
 
@@ -79,7 +79,7 @@ def test_fit_reports_the_phase_aware_estimate(monkeypatch) -> None:
 
 def test_cost_model_follows_the_config() -> None:
     fast = preset_config("fast")
-    assert full_cost_ratio(fast, 3) == pytest.approx((3 * 2048 + 2048) / (3 * 2048))
+    assert full_cost_ratio(fast, 3) == pytest.approx((3 * 4096 + 2048) / (3 * 4096))
     silent = replace(fast, loss=replace(fast.loss, lambda_ac=0.0, lambda_dc=0.0))
     assert full_cost_ratio(silent, 3) == 1.0  # no unseen poses are rendered then
     for steps in (1, 7, 10, 400):
@@ -92,3 +92,4 @@ def test_cost_model_follows_the_config() -> None:
 
 def test_preset_steps_match_the_presets() -> None:
     assert PRESET_STEPS == {name: preset_config(name).steps for name in PRESETS}
+    assert FAST_RAYS_PER_VIEW == preset_config("fast").rays_per_view
