@@ -93,6 +93,14 @@ def deployed_env(tmp: Path, redis_url: str, run: str) -> dict[str, str]:
     }
 
 
+def render_settings(env: dict[str, str]) -> dict[str, str]:
+    """The API's render settings in ``env``: each ``CMC_`` variable, else the setting's default."""
+    from service.settings import Settings
+
+    names = ("render_concurrency", "render_threads", "render_queue")
+    return {n: env.get(f"CMC_{n.upper()}", str(Settings.model_fields[n].default)) for n in names}
+
+
 def start_services(tmp: Path, env: dict, procs: list, port: int) -> None:
     """The API and one worker for both queues, each its own process, as in main()."""
     api = ["-m", "uvicorn", "service.app:create_app", "--factory", "--log-level", "warning", "--port", str(port)]
@@ -231,6 +239,7 @@ def load_bench(args) -> None:
         ).stdout.strip(),
         "settings": {k: str(v) for k, v in vars(args).items()},
         "render_settings_from_env": settings,
+        "render_settings": render_settings(env),
     }
     try:
         start_services(tmp, env, procs, port)

@@ -109,7 +109,12 @@ class Settings(BaseSettings):
         description="CPU threads per render; render_concurrency x render_threads should not exceed the cores "
         "(on 2 busy cores, 2 renders of 1 thread each served 15 % more renders per second than 1 of 2 threads)",
     )
-    render_queue: int = Field(8, ge=0, description="renders waiting for one of those; more get 503 + Retry-After")
+    render_queue: int = Field(
+        32,
+        ge=0,
+        description="renders waiting for one of those; more get 503 + Retry-After (32: about 2 s of renders "
+        "on 2 cores; a shorter queue sends clients away to come back later, which stretched the tail)",
+    )
     max_render_pixels: int = Field(4_000_000, ge=1, description="largest render (width x height)")
 
     # -- webhooks (service/webhooks.py) -----------------------------------------------------
