@@ -48,25 +48,27 @@ FERN_CMD = (
     "CMC_LPIPS_DIR=../shared/weights cmc bench llff --data ../shared/datasets/llff --scenes fern "
     "--out bench/{} --save-dir /tmp/runs"
 )
-# The `fast` preset now: the cross-view colour factor (loss.cross_view_colour) was measured on the
-# synthetic set with its flag, then made the default; fern was run again on the commit that did.
-FERN_AFTER = "view_quality_fern_cvc.json"
-SYN_AFTER = "view_quality_synthetic_cvc.json"
-FERN_AFTER_FLAGS = ""
-SYN_AFTER_FLAGS = " --set loss.cross_view_colour=0.25  (before that became the default)"
+# The `fast` preset now: 4096 rays per input view and step, measured on both sets with its flag,
+# then made the default.
+FERN_AFTER = "view_quality_fern_rays.json"
+SYN_AFTER = "view_quality_synthetic_rays.json"
+FERN_AFTER_FLAGS = " --set rays_per_view=4096  (before that became the default)"
+SYN_AFTER_FLAGS = FERN_AFTER_FLAGS
 AFTER_NOTE = (
-    "These runs ran with one thread while other work used the CPU at times: their train seconds are "
-    "not comparable with the before runs (the preset trained in 165 s on a quiet host, 340 s on a "
-    "slower day); compare them with the rows of the same session in the table below.\n"
+    "These runs had the CPU to themselves, on two threads; most earlier rows of the table below ran "
+    "on one thread while other work used the CPU at times, so compare train seconds within a "
+    "session only: the same day, on two threads, the previous `fast` (2048 rays per view; the "
+    "learning-rate rows below cost the same) trained in 247-249 s.\n"
 )
 HIDDEN_LABEL = (
     "the previous `fast`: + hidden layers behind confidently placed outlines "
     "(`model.pyramid.stereo_hidden_radius=0.05`, `stereo_hidden_confidence=0.5`)"
 )
-NOW_LABEL = (
-    "**`fast` now**: the colour gradients each MPI gets from the other input views scaled by 0.25 "
+CVC_LABEL = (
+    "the previous `fast`: the colour gradients each MPI gets from the other input views scaled by 0.25 "
     "(`loss.cross_view_colour=0.25`)"
 )
+NOW_LABEL = "**`fast` now**: 4096 rays per input view and step instead of 2048 (`rays_per_view=4096`)"
 BG4_LABEL = "the previous `fast`: + a base colour per group of 12 planes (`model.pyramid.base_groups=4`)"
 ENTROPY_LABEL = "the previous `fast`: + alpha entropy prior 0.01 (`cmc.losses.alpha_entropy`)"
 FERN_STEPS = [
@@ -197,6 +199,20 @@ FERN_STEPS = [
         "... 0.1, with the texel grid on the pixel grid (margin 1.2063), so that the base starts as the photo "
         "itself (not adopted: LPIPS-alex 0.206, as when this was tried without the factor)",
     ),
+    ("cvc", CVC_LABEL),
+    (
+        "lrf01",
+        "the previous `fast` with the learning rate decaying to 0.01 instead of 0.005 (not adopted: LPIPS-vgg +0.004)",
+    ),
+    (
+        "lrf002",
+        "the previous `fast` with the learning rate decaying to 0.002 instead of 0.005 (not adopted: LPIPS-vgg +0.004)",
+    ),
+    (
+        "s600",
+        "the previous `fast` with 600 steps instead of 400 (not adopted: LPIPS-vgg -0.007, as good as the row "
+        "below for about the same time; the textures were still underfitted at step 400)",
+    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
@@ -271,6 +287,7 @@ VQ_ABLATION = [
         "the previous `fast` with hidden layers from surfaces within 10 % of the plane width instead of 5 % (not "
         "adopted: halfway -0.12 dB, beyond -0.07 dB)",
     ),
+    ("view_quality_synthetic_cvc.json", CVC_LABEL),
     (SYN_AFTER, NOW_LABEL),
 ]
 
@@ -430,11 +447,11 @@ def view_quality_section() -> list[str]:
             f"Mean PSNR gain: halfway {gain['halfway']:+.2f} dB (target >= +3), near {gain['near']:+.2f} dB "
             "(target: not worse).\n",
         ]
-        prev = load("view_quality_synthetic_hidden.json")
+        prev = load("view_quality_synthetic_cvc.json")
         if "beyond" in sa["mean"] and prev:
             out.append(
                 f"Beyond the inputs (not scored in the before run): {sa['mean']['beyond']['psnr']:.2f} dB against "
-                f"{prev['mean']['beyond']['psnr']:.2f} dB for the previous `fast` the same day (ablation table).\n"
+                f"{prev['mean']['beyond']['psnr']:.2f} dB for the previous `fast` (ablation table).\n"
             )
     rows = []
     final = load(SYN_AFTER)
@@ -688,6 +705,10 @@ def load_section(load_report: dict | None, title: str, bake: str, host: str) -> 
     codecs = [
         f"{name} {v['median_ms']:.1f} ms ({v['bytes'] / 1e3:.0f} kB)" for name, v in enc.items() if isinstance(v, dict)
     ]
+    env = load_report.get("render_settings_from_env", {})
+    # Reports from before "render_settings" was recorded ran with the defaults of then: 2, 1, 8.
+    then = {"render_concurrency": "2", "render_threads": "1", "render_queue": "8"}
+    render = load_report.get("render_settings") or {n: env.get(f"CMC_{n.upper()}", v) for n, v in then.items()}
     at20 = [r for r in load_report["load"] if r["clients"] == 20]
     errors = sum(r["errors"] for r in load_report["load"] if r["clients"] >= 20)
     p95 = max(r["p95_s"] for r in at20)
@@ -699,8 +720,9 @@ def load_section(load_report: dict | None, title: str, bake: str, host: str) -> 
         "(render cost depends on the alphas), the worker stopped; the cache warm "
         "(one render per scene first). Each client sends its requests one after the other (held-out views "
         "in turn, 504x378 PNG), waits out a 503 as its `Retry-After` says and sends again; latency runs "
-        "from the first send to the image. Default render settings (`CMC_RENDER_CONCURRENCY` 2, "
-        "`CMC_RENDER_THREADS` 1, `CMC_RENDER_QUEUE` 8).\n",
+        "from the first send to the image. Render settings: "
+        + ", ".join(f"`CMC_{n.upper()}` {v}" for n, v in render.items())
+        + ".\n",
         f"Command: `{load_report['command']}`  \n"
         f"Machine: {load_report['machine']['cpu']}, {load_report['machine']['cores']} cores, {host}. "
         f"Date: {load_report['date']}; git commit {load_report['git_commit']}.\n",
@@ -712,8 +734,13 @@ def load_section(load_report: dict | None, title: str, bake: str, host: str) -> 
         f"{'' if errors == 0 else ' but those'}); p95 <= 1 s at 20 clients is {'met' if p95 <= 1 else 'missed'} "
         f"(p95 {p95:.2f} s): the two cores render about {best:.1f} images a second at best, so 20 waiting "
         f"clients wait about 20 / {best:.1f} = {20 / best:.1f} s on average for the renders before theirs "
-        "(Little's law), and clients sent away with a 503 come back at random, which stretches the tail. "
-        f"The API process held {load_report['api_rss_mb_after']:.0f} MB resident with the 8 scenes loaded.",
+        "(Little's law)"
+        + (
+            ", and clients sent away with a 503 come back at random, which stretches the tail. "
+            if any(r["retries_after_503"] for r in at20)
+            else "; none was sent away (no 503 at 20 clients), so they were served in turn. "
+        )
+        + f"The API process held {load_report['api_rss_mb_after']:.0f} MB resident with the 8 scenes loaded.",
         "",
         f"Encoding one render (in process, median; the render itself took {enc['render_ms_one_thread']:.0f} "
         f"ms on one thread): {'; '.join(codecs)}. The service's settings (PNG compress level 1, JPEG quality "
@@ -1051,6 +1078,18 @@ def main() -> None:
         load("service_load_entropy_cpu.json"),
         "## Render endpoint under load, the bake of today's `fast` preset (issue 10, item 3)\n",
         'the bake of the section "the bake of today\'s `fast` preset" above',
+        "nothing else running",
+    )
+    out += load_section(
+        load("service_load_blocks_cpu.json"),
+        "## Render endpoint under load, with the renderer that skips empty blocks (issue 10, item 3)\n",
+        "the bake of the view-quality section's after run (`fast` now, fern, its `--save-dir`)",
+        "nothing else running",
+    )
+    out += load_section(
+        load("service_load_queue32_cpu.json"),
+        "## Render endpoint under load, a render queue of 32 (issue 10, item 3)\n",
+        "the bake of the view-quality section's after run (`fast` now, fern, its `--save-dir`)",
         "nothing else running",
     )
     svc = load("service_cpu.json")
