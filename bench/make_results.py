@@ -838,16 +838,21 @@ def main() -> None:
         "```",
         "",
     ]
-    demo = load("demo_cpu.json")
-    if demo:
+    demo, demo_before = load("demo_cpu.json"), load("demo_cpu_before.json")
+    if demo and demo_before:
         out += [
             "## README demo (synthetic layered scene, 3 views at 240x180, CPU)\n",
-            "Command: `cmc demo --out /tmp/demo_full` (its summary.json copied to bench/demo_cpu.json).  \n"
-            "Machine: the same 2-core CPU box, no GPU. "
-            "Date: 2026-11-23 (the `fast` preset after the view-quality work).\n",
-            f"- training: {demo['steps']} steps in {demo['train_seconds']:.0f} s",
-            f"- novel view (between input cameras) vs exact ground truth: {demo['novel_view_psnr_db']:.2f} dB PSNR",
-            f"- median relative depth error of that view: {demo['novel_depth_median_abs_rel_error']:.3f}\n",
+            "Command: `cmc demo --out /tmp/demo_full` (its summary.json copied to bench/demo_cpu.json; the "
+            "first view-quality preset's to bench/demo_cpu_before.json).  \n"
+            "Machine: the same 2-core CPU box, no GPU, nothing else running. "
+            "Date: 2026-11-24, `fast` with 4096 rays per view (before: 2026-11-23, the `fast` preset of the "
+            "first view-quality session).\n",
+            f"- training: {demo['steps']} steps in {demo['train_seconds']:.0f} s "
+            f"(before: {demo_before['train_seconds']:.0f} s)",
+            f"- novel view (between input cameras) vs exact ground truth: {demo['novel_view_psnr_db']:.2f} dB PSNR "
+            f"(before: {demo_before['novel_view_psnr_db']:.2f} dB)",
+            f"- median relative depth error of that view: {demo['novel_depth_median_abs_rel_error']:.3f} "
+            f"(before: {demo_before['novel_depth_median_abs_rel_error']:.3f})\n",
         ]
     e2e = load("poses_e2e.json")
     if e2e:

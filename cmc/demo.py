@@ -43,7 +43,7 @@ def run_demo(
     save_scene_folder(scene, out / "input")
     cfg = preset_config("fast", steps=steps)
     trainer = Trainer(scene, cfg)
-    # No checkpoint: two minutes of training are cheaper to redo than a 150 MB file in the output.
+    # No checkpoint: a few minutes of training are cheaper to redo than a 150 MB file in the output.
     result = trainer.fit(on_progress=on_progress)
     baked = BakedScene.load(bake(trainer.model, out / "baked"))
     # A novel view between input cameras 0 and 1, with its exact ground truth.
