@@ -96,7 +96,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       the photo sees past the outline is background, not a smear of the occluder), the colour
       gradients each MPI gets from the other input views' rays scaled by 0.25
       (``loss.cross_view_colour``: its colours stay those of its own photo, its geometry answers
-      to every view), 4096 rays per input view and step, 400 steps: about 4-7 minutes on fern
+      to every view), 4096 rays per input view and step, 400 steps: about 6-8 minutes on fern
       (504x378), 2 CPU cores.
     """
     if name == "paper":

@@ -14,8 +14,8 @@ speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2
 
 * :data:`REFERENCE_POSES_S`: structure from motion, 12.7 s (median of 3, bench/poses_fern.md).
 * :data:`REFERENCE_STEP_S`: a training step, plane sweep included, 0.96 s (400 steps of 4096
-  rays per view in 384 s, bench/view_quality_fern_rays.json). A GPU trains much faster: until training has run a step,
-  a job's estimate is pessimistic there.
+  rays per view in 384 s, bench/view_quality_fern_rays.json). A GPU trains much faster: until
+  training has run a step, a job's estimate is pessimistic there.
 * Baking, in training steps (:func:`bake_steps`): modelled, not measured; the bake evaluates
   every texel of every plane once, a step its rays' samples forward and backward.
 """
