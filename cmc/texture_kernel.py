@@ -179,10 +179,9 @@ def occupancy(rgba: np.ndarray) -> np.ndarray:
     """
     D, h, w, _ = rgba.shape
     th, tw = _tiles(h, w)
-    a = np.zeros((D, th * TILE + 1, tw * TILE + 1), dtype=bool)
+    a = np.zeros((D, th * TILE, tw * TILE), dtype=bool)  # the framed planes, padded to whole tiles
     a[:, 1 : h + 1, 1 : w + 1] = rgba[..., 3] > 0
-    reach = a[:, :-1, :-1] | a[:, 1:, :-1] | a[:, :-1, 1:] | a[:, 1:, 1:]  # taps of (y, x): (y..y+1, x..x+1)
-    return reach.reshape(D, th, TILE, tw, TILE).any(axis=(2, 4)).astype(np.uint8)
+    return reach(a).reshape(D, th, TILE, tw, TILE).any(axis=(2, 4)).astype(np.uint8)
 
 
 def occupied_tiles(occ: np.ndarray) -> np.ndarray:
