@@ -223,6 +223,13 @@ FERN_STEPS = [
         "`fast` now with 4096 rays at each unseen pose instead of 2048 (not adopted: SSIM +0.001, LPIPS-vgg "
         "-0.001, noise)",
     ),
+    (
+        "xcheck",
+        "`fast` now with the hidden layers gated by a left-right check of the three sweeps (another MPI's sweep "
+        "finds the same surface at the reprojected point) instead of the sweep's confidence: more layers on "
+        "fern (49-63 % of texels confirmed, 10-19 % confident) (not adopted: -0.14 dB, LPIPS-vgg +0.026; the "
+        "option was removed; code: commit 91cecea)",
+    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [

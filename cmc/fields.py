@@ -111,8 +111,6 @@ class PyramidFieldConfig:
     # probability above stereo_hidden_confidence, at the texel and at the farther surface.
     stereo_hidden_radius: float = 0.0
     stereo_hidden_confidence: float = 0.0
-    # Also only where another MPI's sweep confirms the plane (cmc.planesweep.cross_checked).
-    stereo_hidden_cross_check: bool = False
 
 
 def plane_group_bounds(num_planes: int, groups: int) -> list[int]:

@@ -11,7 +11,7 @@ from cmc.config import ModelConfig
 from cmc.datasets import Scene
 from cmc.fields import MLPField, MPIField, PyramidPlaneField, plane_group_bounds
 from cmc.geometry import texel_grid
-from cmc.planesweep import alpha_from_weights, cross_checked, layered_alpha, plane_sweep_weights
+from cmc.planesweep import alpha_from_weights, layered_alpha, plane_sweep_weights
 from cmc.rendering import ImageOutput, MPIFrame, render_image
 
 
@@ -86,39 +86,32 @@ class CMCModel(nn.Module):
         ]
         fields: list[MPIField] = []
         images = torch.as_tensor(scene.images, device=device).permute(0, 3, 1, 2)
-        pc = cfg.pyramid
-        probs: list[torch.Tensor] = []
-        if cfg.field_type == "pyramid" and pc.stereo_init:
-            for i, fr in enumerate(self.frames):
-                h, w = (max(2, round(e * pc.scales[0])) for e in fr.extent)
-                probs.append(
-                    plane_sweep_weights(
-                        self.frames,
-                        images,
-                        i,
-                        h,
-                        w,
-                        pc.stereo_temperature,
-                        occlusion_aware=pc.stereo_occlusion_aware,
-                        edge_sigma=pc.stereo_edge_sigma or None,
-                        extend_border=pc.stereo_extend_border,
-                    )
-                )
-        confirmed = cross_checked(self.frames, probs) if probs and pc.stereo_hidden_cross_check else None
         for i, fr in enumerate(self.frames):
             if cfg.field_type == "mlp":
                 fields.append(MLPField(cfg.num_planes, cfg.mlp))
             elif cfg.field_type == "pyramid":
                 init_alpha, rgb = None, padded_reference(scene.images[i], fr)
-                if probs and pc.stereo_hidden_radius > 0:
-                    radius = max(1, round(pc.stereo_hidden_radius * probs[i].shape[-1]))
-                    sure = confirmed[i] if confirmed is not None else None
-                    init_alpha, front, edge = layered_alpha(probs[i], radius, pc.stereo_hidden_confidence, sure)
-                    front = torch.where(edge, front, cfg.num_planes)  # elsewhere the photo stays
-                    rgb = hidden_layer_colours(rgb, front, cfg.num_planes, pc.base_groups)
-                elif probs:
-                    init_alpha = alpha_from_weights(probs[i])
-                fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, pc, rgb, init_alpha))
+                if cfg.pyramid.stereo_init:
+                    h, w = (max(2, round(e * cfg.pyramid.scales[0])) for e in fr.extent)
+                    probs = plane_sweep_weights(
+                        self.frames,
+                        images,
+                        i,
+                        h,
+                        w,
+                        cfg.pyramid.stereo_temperature,
+                        occlusion_aware=cfg.pyramid.stereo_occlusion_aware,
+                        edge_sigma=cfg.pyramid.stereo_edge_sigma or None,
+                        extend_border=cfg.pyramid.stereo_extend_border,
+                    )
+                    if cfg.pyramid.stereo_hidden_radius > 0:
+                        radius = max(1, round(cfg.pyramid.stereo_hidden_radius * w))
+                        init_alpha, front, edge = layered_alpha(probs, radius, cfg.pyramid.stereo_hidden_confidence)
+                        front = torch.where(edge, front, cfg.num_planes)  # elsewhere the photo stays
+                        rgb = hidden_layer_colours(rgb, front, cfg.num_planes, cfg.pyramid.base_groups)
+                    else:
+                        init_alpha = alpha_from_weights(probs)
+                fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha))
             else:
                 raise ValueError(f"unknown field type {cfg.field_type!r}")
         self.fields = nn.ModuleList(fields).to(device)

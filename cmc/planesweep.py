@@ -144,52 +144,8 @@ def alpha_from_weights(weights: torch.Tensor, lo: float = 0.01, hi: float = 0.99
     return (weights / remaining.clamp_min(1e-6)).clamp(lo, hi)
 
 
-@torch.no_grad()
-def cross_checked(frames: list, probs: list[torch.Tensor], tolerance: float = 1.5) -> list[torch.Tensor]:
-    """Per MPI, [h, w] bool: the texels whose most probable plane another MPI's sweep confirms.
-
-    A texel's visible surface (its most probable plane, at the texel centre's ray) is a 3D
-    point; projected into another MPI's reference camera, it must land inside that MPI's plane
-    extent and within ``tolerance`` plane spacings (in disparity) of the surface that MPI's own
-    sweep found at that texel (nearest texel). One confirming MPI suffices: an MPI that the
-    point is hidden from sees its occluder there instead. This is the left-right check of
-    two-view stereo, a reliability test that does not depend on how peaked the cost curve is
-    (on a real photo it rarely is: a texel of fern has its best plane at probability 0.23).
-
-    Args:
-        frames: the MPIFrames; probs: per MPI [D, h_i, w_i] sweep probabilities
-            (:func:`plane_sweep_weights`), planes nearest first.
-    """
-    fronts = [p.argmax(0) for p in probs]
-    out = []
-    for i, fr in enumerate(frames):
-        _, h, w = probs[i].shape
-        uv = texel_pixels(fr, h, w)
-        rays = torch.cat([uv, torch.ones_like(uv[:, :1])], -1) @ torch.linalg.inv(fr.K).T  # z = 1
-        points = rays * fr.depths[fronts[i].reshape(-1)][:, None]  # [T, 3] reference camera
-        world = points @ fr.world_from_ref[:3, :3].T + fr.world_from_ref[:3, 3]
-        ok = torch.zeros(h * w, dtype=torch.bool, device=uv.device)
-        for j, other in enumerate(frames):
-            if j == i:
-                continue
-            ref_from_world = other.ref_from_world
-            p = world @ ref_from_world[:3, :3].T + ref_from_world[:3, 3]
-            z = p[:, 2]
-            uv_j = (p @ other.K.T)[:, :2] / z.clamp_min(1e-6)[:, None]
-            _, hj, wj = probs[j].shape
-            g = (other.grid_from_pixels(uv_j) + 1) / 2  # [0, 1] over the plane extent
-            col, row = (g[:, 0] * wj).floor().long(), (g[:, 1] * hj).floor().long()
-            inside = (z > 0) & (col >= 0) & (col < wj) & (row >= 0) & (row < hj)
-            found = other.depths[fronts[j][row.clamp(0, hj - 1), col.clamp(0, wj - 1)]]
-            disparity = 1 / other.depths
-            spacing = (disparity[0] - disparity[-1]) / max(1, len(disparity) - 1)
-            ok |= inside & ((1 / z.clamp_min(1e-6) - 1 / found).abs() <= tolerance * spacing)
-        out.append(ok.reshape(h, w))
-    return out
-
-
 def layered_alpha(
-    weights: torch.Tensor, radius: int, confidence: float = 0.0, confirmed: torch.Tensor | None = None
+    weights: torch.Tensor, radius: int, confidence: float = 0.0
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Alphas from plane-sweep probabilities ``[D, h, w]`` with a hidden background layer behind
     foreground edges, and the visible plane of each texel.
@@ -198,8 +154,7 @@ def layered_alpha(
     surface, where the reference photo cannot tell; a view beside the reference then sees, past
     a foreground outline, the far plane holding the photo's foreground colour (a smear). Here a
     texel whose visible plane (the most probable) has probability above ``confidence`` and whose
-    neighbourhood (``radius`` texels) holds a farther visible surface, also confidently placed
-    (and, where ``confirmed`` [h, w] bool is given, both also confirmed by :func:`cross_checked`),
+    neighbourhood (``radius`` texels) holds a farther visible surface, also confidently placed,
     gets that surface continued behind it: alpha 0.99 on the farthest such plane of the
     neighbourhood (after a 3x3 median against lone outliers), 0.01 on the other planes behind
     its own surface. Returns (alpha [D, h, w], visible plane index [h, w] (0 = nearest), mask
@@ -208,8 +163,6 @@ def layered_alpha(
     alpha = alpha_from_weights(weights)
     best, front = weights.max(0)
     sure = best > confidence
-    if confirmed is not None:
-        sure &= confirmed
     smooth = F.pad(front[None, None].float(), (1, 1, 1, 1), mode="replicate")
     smooth = F.unfold(smooth, 3).median(1).values.reshape(front.shape)
     smooth = torch.where(sure, smooth, torch.full_like(smooth, -1.0))

@@ -8,7 +8,7 @@ import torch
 from cmc.datasets import Layer, render_layers, synthetic_cameras
 from cmc.geometry import plane_depths
 from cmc.model import hidden_layer_colours
-from cmc.planesweep import alpha_from_weights, cross_checked, layered_alpha, plane_sweep_weights
+from cmc.planesweep import alpha_from_weights, layered_alpha, plane_sweep_weights
 from cmc.rendering import MPIFrame, composite
 
 
@@ -195,27 +195,3 @@ def test_layered_alpha_leaves_unsure_texels_alone():
     assert edge[12, 12] and alpha[9, 12, 12] == 0.99  # its sure neighbour still gets the wall
     assert not edge[4, 4]  # the outlier gives the wall near it no layer at plane 11
     assert torch.all(alpha[11, 10:14, 10:14][edge[10:14, 10:14]] == 0.01)
-
-
-def test_cross_check_confirms_the_true_planes_and_rejects_a_wrong_patch():
-    """Sweep probabilities that put every texel of three views on its exact depth (a post before
-    a wall) are confirmed almost everywhere inside the images; a patch of view 0 moved 6 planes
-    nearer (a wrong match) is not, and the other views' texels stay confirmed."""
-    cams = synthetic_cameras(3, width=64, height=48, baseline=0.6)
-    layers = (Layer(2.5, (-0.1, 0.1, -1e3, 1e3), 6), Layer(5.0, (-1e3, 1e3, -1e3, 1e3), 7))
-    _, depth = render_layers(layers, cams)
-    near, far, D = 1.5, 7.0, 24
-    frames = [MPIFrame.create(cams.K[i], cams.world_from_cam[i], near, far, D, 64, 48, 1.0) for i in range(3)]
-    disparity = 1 / plane_depths(near, far, D)
-    planes = [torch.as_tensor(np.abs(1 / depth[i][..., None] - disparity).argmin(-1)) for i in range(3)]
-    planes[0][10:20, 40:50] -= 6  # the wall there, put 6 planes too near
-    probs = [torch.nn.functional.one_hot(k, D).permute(2, 0, 1).float() for k in planes]
-    ok = cross_checked(frames, probs)
-    assert ok[0].shape == (48, 64)
-    assert not ok[0][10:20, 40:50].any()
-    for i in range(3):
-        rest = torch.ones(48, 64, dtype=torch.bool)
-        if i == 0:
-            rest[10:20, 40:50] = False
-        # Texels near the side borders see parts of the scene the other cameras do not.
-        assert ok[i][:, 8:-8][rest[:, 8:-8]].float().mean() > 0.9
