@@ -18,7 +18,8 @@ On-disk format ``cmc-mpi`` version 1 (a folder; every file is browser-loadable):
                "grid": [rows, cols],  # tiles in the atlas, row-major, plane k at (k // cols, k % cols)
                "atlas": "mpi_00.png"}, ...]}
 
-* ``mpi_XX.png``: 8-bit RGBA atlas of the D planes, straight (not premultiplied) alpha. Texel
+* ``mpi_XX.png``: 8-bit RGBA atlas of the D planes, straight (not premultiplied) alpha, alpha
+  of :data:`ALPHA_FLOOR` (2) or less stored as 0 (:func:`quantize_planes`). Texel
   (r, c) of a tile covers reference pixel coordinates
   ``((c + 0.5) / w * 2 - 1) * m`` -> ``u = (x * m + 1) / 2 * W`` (same for v with h, H), i.e.
   the tile spans the image's extent enlarged ``m`` times about the image centre.
@@ -51,6 +52,13 @@ from cmc.rendering import ImageOutput, MPIFrame, blend_selection, render_image
 if TYPE_CHECKING:
     from cmc.texture_kernel import MPIGeometry, PackedTextures
 from cmc.errors import BakedFormatError
+
+# Baked alpha at or below this 8-bit count (under 1 % opacity) is stored as 0. Training leaves
+# such faint alpha on a fifth of fern's texels (where the alpha entropy prior does not reach:
+# behind surfaces, outside every view); it barely shows (colour PSNR 52-57 dB against keeping
+# it, at fern's test views) but every such texel makes the renderer take a sample: without it a
+# fern render takes 25 % less time (bench/RESULTS.md, serving cost).
+ALPHA_FLOOR = 2
 
 FORMAT = "cmc-mpi"
 VERSION = 1
@@ -106,11 +114,23 @@ def merge_planes(rgba: torch.Tensor, depths: torch.Tensor, group: int) -> tuple[
     return torch.stack(planes), torch.stack(new_depths)
 
 
-def bake(model: CMCModel, out_dir: str | Path, scale: float = 1.0, merge: int = 1) -> Path:
+def quantize_planes(rgba: torch.Tensor, alpha_floor: int = ALPHA_FLOOR) -> np.ndarray:
+    """[D, 4, h, w] straight-alpha planes in [0, 1] -> [D, h, w, 4] uint8 as stored, alpha at or
+    below ``alpha_floor`` set to 0 (colours kept)."""
+    tiles = to_uint8(rgba).permute(0, 2, 3, 1).cpu().numpy()
+    alpha = tiles[..., 3]
+    alpha[alpha <= alpha_floor] = 0
+    return tiles
+
+
+def bake(
+    model: CMCModel, out_dir: str | Path, scale: float = 1.0, merge: int = 1, alpha_floor: int = ALPHA_FLOOR
+) -> Path:
     """Write ``model`` in the ``cmc-mpi`` format.
 
     ``scale`` multiplies the texel resolution; ``merge`` > 1 composites that many adjacent
-    planes into one (:func:`merge_planes`) for faster rendering.
+    planes into one (:func:`merge_planes`) for faster rendering; alpha at or below
+    ``alpha_floor`` (8-bit counts) is stored as 0 (:func:`quantize_planes`; 0 keeps every alpha).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -121,7 +141,7 @@ def bake(model: CMCModel, out_dir: str | Path, scale: float = 1.0, merge: int = 
         D = rgba.shape[0]
         rows, cols = _atlas_grid(D)
         atlas = np.zeros((rows * h, cols * w, 4), dtype=np.uint8)
-        tiles = to_uint8(rgba).permute(0, 2, 3, 1).cpu().numpy()
+        tiles = quantize_planes(rgba, alpha_floor)
         for k in range(D):
             r, c = divmod(k, cols)
             atlas[r * h : (r + 1) * h, c * w : (c + 1) * w] = tiles[k]

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from cmc._reference import render_texture_image_reference
-from cmc.baking import BakedFormatError, BakedScene, bake
+from cmc.baking import BakedFormatError, BakedScene, bake, quantize_planes
 from cmc.config import preset_config
 from cmc.datasets import synthetic_scene
 from cmc.geometry import blend_weights, mean_baseline, sample_virtual_pose
@@ -32,8 +32,10 @@ def trained(request):
 
 
 def test_baked_render_matches_field_render_at_input_views(trained, tmp_path):
+    """Baked with every alpha kept (alpha_floor 0): this short training leaves faint alpha (the
+    plane-sweep start's 0.01) on many planes, which the default floor drops on purpose."""
     scene, model = trained
-    baked = BakedScene.load(bake(model, tmp_path / "baked"))
+    baked = BakedScene.load(bake(model, tmp_path / "baked", alpha_floor=0))
     for i in range(len(scene)):
         K, pose = scene.cameras.K[i], scene.cameras.world_from_cam[i]
         a, b = model.render(K, pose, W, H), baked.render(K, pose)
@@ -106,3 +108,16 @@ def test_merged_planes_are_exact_at_the_reference_view(trained, tmp_path):
     a = full.render(K, pose, min_weight=0.99)  # the reference MPI alone
     b = merged.render(K, pose, min_weight=0.99)
     assert psnr(a.rgb.numpy(), b.rgb.numpy()) >= 40
+
+
+def test_faint_alpha_is_stored_as_zero():
+    """Alpha at or below ALPHA_FLOOR counts (under 1 % opacity) is stored as 0, colours kept;
+    alpha above it and the opaque back plane are stored as rounded."""
+    rgba = torch.zeros(2, 4, 1, 4)
+    rgba[:, :3] = 0.5
+    rgba[0, 3, 0] = torch.tensor([0.003, 0.0078, 0.0118, 0.5])  # 8-bit 1, 2, 3, 128
+    rgba[1, 3] = 1.0
+    tiles = quantize_planes(rgba)
+    assert tiles.dtype == np.uint8 and tiles.shape == (2, 1, 4, 4)
+    assert tiles[0, 0, :, 3].tolist() == [0, 0, 3, 128]
+    assert (tiles[..., :3] == 128).all() and (tiles[1, ..., 3] == 255).all()
