@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import asyncio
 import io
+import struct
 import threading
+import zlib
 from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -133,13 +135,42 @@ def encode_image(rgb: np.ndarray, media_type: str) -> bytes:
     """[H, W, 3] float in [0, 1] -> PNG or JPEG bytes."""
     from cmc.images import to_uint8
 
-    im = Image.fromarray(to_uint8(rgb))
+    rgb8 = to_uint8(rgb)
+    if media_type != "image/jpeg":
+        return png_bytes(rgb8)
     buf = io.BytesIO()
-    if media_type == "image/jpeg":
-        im.save(buf, "JPEG", quality=90)
-    else:
-        im.save(buf, "PNG", compress_level=1)
+    Image.fromarray(rgb8).save(buf, "JPEG", quality=90)
     return buf.getvalue()
+
+
+def png_bytes(image: np.ndarray) -> bytes:
+    """[H, W, 3] uint8 (RGB) or [H, W] uint16 (greyscale) -> PNG bytes, made for speed.
+
+    Every row gets the PNG "sub" filter (each byte minus the one a pixel to its left), then zlib
+    level 1 with its run-length strategy. Pillow tries all five PNG filters on every row and keeps
+    the best (as libpng does): on a 504x378 view that took 14 ms against 6 ms here, for 4 % fewer
+    bytes (bench/RESULTS.md, serving cost).
+    """
+    if image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3:
+        colour_type, bits, bpp, data = 2, 8, 3, image
+    elif image.dtype == np.uint16 and image.ndim == 2:
+        colour_type, bits, bpp, data = 0, 16, 2, image.astype(">u2").view(np.uint8)  # big-endian samples
+    else:
+        raise ValueError(f"png_bytes takes [H, W, 3] uint8 or [H, W] uint16, not {image.dtype} {image.shape}")
+    h, w = image.shape[:2]
+    rows = np.ascontiguousarray(data).reshape(h, -1)
+    filtered = np.empty((h, rows.shape[1] + 1), np.uint8)
+    filtered[:, 0] = 1  # filter type "sub"
+    filtered[:, 1 : bpp + 1] = rows[:, :bpp]
+    np.subtract(rows[:, bpp:], rows[:, :-bpp], out=filtered[:, bpp + 1 :])  # wraps modulo 256, as PNG wants
+    deflate = zlib.compressobj(1, zlib.DEFLATED, 15, 9, zlib.Z_RLE)
+    idat = deflate.compress(filtered.data) + deflate.flush()
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    header = struct.pack(">IIBBBBB", w, h, bits, colour_type, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
 
 
 def depth_scale(far: float) -> float:
@@ -149,9 +180,7 @@ def depth_scale(far: float) -> float:
 
 def encode_depth_png16(depth: np.ndarray, far: float) -> bytes:
     counts = np.clip(np.round(depth / depth_scale(far)), 0, 65535).astype(np.uint16)
-    buf = io.BytesIO()
-    Image.fromarray(counts).save(buf, "PNG", compress_level=1)  # mode I;16: 16-bit greyscale
-    return buf.getvalue()
+    return png_bytes(counts)  # 16-bit greyscale
 
 
 def encode_depth_npy(depth: np.ndarray) -> bytes:
