@@ -28,6 +28,10 @@ renders (colour PSNR, depth max relative error over covered pixels). Every repor
 agreement of the current renderer with the torch renderer (:func:`cmc.rendering.render_image`,
 untimed): the quality target.
 
+``--before-baked DIR`` instead times the current renderer on an older bake of the same scene
+(e.g. one made before a change to :func:`cmc.baking.bake`), alternating in the same way; the
+agreement block then compares the two bakes' renders.
+
 ``--threads N``: CPU threads per render of the current renderer (default: one per core).
 
 Memory: the bytes a loaded scene keeps (``BakedScene.nbytes``, the 8-bit textures) and those of
@@ -117,6 +121,12 @@ def main() -> None:
         default=None,
         help="an older cmc/rendering.py or texture_kernel.py to time alternately",
     )
+    ap.add_argument(
+        "--before-baked",
+        type=Path,
+        default=None,
+        help="an older bake of the same scene to time alternately, with the current renderer",
+    )
     ap.add_argument("--threads", type=int, default=None, help="CPU threads per render (default: one per core)")
     ap.add_argument("--out", type=Path, default=ROOT / "bench/render_speed_cpu.json")
     args = ap.parse_args()
@@ -138,6 +148,11 @@ def main() -> None:
     poses += [("input", split.train_ids[k], split.train.cameras, k) for k in range(len(split.train))]
 
     renderers = {"after": lambda K, pose, w, h: baked.render(K, pose, w, h, threads=args.threads)}
+    if args.before and args.before_baked:
+        ap.error("--before and --before-baked: one at a time")
+    if args.before_baked:
+        baked_before = BakedScene.load(args.before_baked)
+        renderers["before"] = lambda K, pose, w, h: baked_before.render(K, pose, w, h, threads=args.threads)
     if args.before:
         old = load_rendering(args.before)
         if hasattr(old, "PackedTextures"):  # a texture_kernel of packed textures: its own copy of them
@@ -197,7 +212,7 @@ def main() -> None:
         K, pose, w, h = cams.K[k], cams.world_from_cam[k], cams.width, cams.height
         outs = {name: render(K, pose, w, h) for name, render in renderers.items()}  # warm-up
         agreement_torch.append(agree(outs["after"], render_image(baked.fields, baked.frames, K, pose, w, h), view))
-        if args.before:
+        if "before" in outs:
             agreement.append(agree(outs["after"], outs["before"], view))
         ms: dict[str, list[float]] = {name: [] for name in renderers}
         for r in range(args.repeats):
@@ -242,9 +257,10 @@ def main() -> None:
         "views": views["after"],
         "agreement_with_torch": agreement_torch,
     }
-    if args.before:
+    if "before" in renderers:
         report["before"] = {
-            "rendering": str(args.before),
+            "rendering": str(args.before) if args.before else "the current renderer",
+            "baked": str(args.before_baked) if args.before_baked else None,
             "interleaved": True,
             "overall": summary(all_ms["before"]),
             "views": views["before"],

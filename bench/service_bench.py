@@ -60,6 +60,7 @@ from servers import flush_redis, free_port, stop_process_groups, wait_ready, wri
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from cmc.bench import git_commit  # noqa: E402
 from cmc.cameras import CameraFile, camera_file_to_dict  # noqa: E402
 from cmc.datasets import load_llff  # noqa: E402
 
@@ -150,12 +151,13 @@ def encodings(baked_dir: Path, split) -> dict:
         return buf.getvalue()
 
     cases = {
-        "png (service: compress_level 1)": lambda: encode_image(rgb, "image/png"),
+        "png (service: sub filter, zlib 1 run-length)": lambda: encode_image(rgb, "image/png"),
         "jpeg (service: quality 90)": lambda: encode_image(rgb, "image/jpeg"),
         "depth png16 (service)": lambda: encode_depth_png16(depth, baked.far),
         "depth npy (service)": lambda: encode_depth_npy(depth),
-        "png compress_level 0 (8-bit image only)": lambda: pil("PNG", compress_level=0),
-        "png compress_level 6 (8-bit image only)": lambda: pil("PNG", compress_level=6),
+        "png Pillow compress_level 0 (8-bit image only)": lambda: pil("PNG", compress_level=0),
+        "png Pillow compress_level 1 (8-bit image only)": lambda: pil("PNG", compress_level=1),
+        "png Pillow compress_level 6 (8-bit image only)": lambda: pil("PNG", compress_level=6),
         "jpeg quality 80 (8-bit image only)": lambda: pil("JPEG", quality=80),
         "float to 8-bit conversion alone": lambda: (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8).tobytes(),
     }
@@ -234,9 +236,7 @@ def load_bench(args) -> None:
         "date": date.today().isoformat(),
         "command": "python bench/service_bench.py " + " ".join(sys.argv[1:]),
         "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count()},
-        "git_commit": subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
-        ).stdout.strip(),
+        "git_commit": git_commit(),  # "+dirty" when the tree had uncommitted changes
         "settings": {k: str(v) for k, v in vars(args).items()},
         "render_settings_from_env": settings,
         "render_settings": render_settings(env),
@@ -336,9 +336,7 @@ def main() -> None:
             "cores": os.cpu_count(),
             "python": platform.python_version(),
         },
-        "git_commit": subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
-        ).stdout.strip(),
+        "git_commit": git_commit(),  # "+dirty" when the tree had uncommitted changes
         "settings": vars(args),
     }
     try:
