@@ -236,6 +236,12 @@ FERN_STEPS = [
         "option was removed; code: commit 91cecea)",
     ),
     ("rays", RAYS_LABEL),
+    (
+        "edge05",
+        "`fast` now with half of each input view's rays drawn in proportion to the photo's gradient magnitude "
+        "instead of all uniformly (not adopted: -0.16 dB, SSIM -0.006, LPIPS-alex -0.006, LPIPS-vgg +0.002; the "
+        "option was removed; code: commit ae1cf1e)",
+    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [

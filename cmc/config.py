@@ -53,9 +53,6 @@ class TrainConfig:
     preset: Preset = "fast"
     steps: int = 400
     rays_per_view: int = 2048  # rays drawn from every input view per step
-    # Share of each input view's rays drawn in proportion to the photo's gradient magnitude (the
-    # rest uniformly): edges, where the textures underfit, get more of the rays.
-    edge_rays: float = 0.0
     unseen_rays: int = 2048  # rays drawn at each unseen pose per step
     unseen_poses: int = 1  # unseen poses per step
     unseen_jitter: float = 0.1  # std of the unseen-pose centre jitter, in mean baselines

@@ -106,31 +106,13 @@ class Trainer:
         self.poses = torch.as_tensor(scene.cameras.world_from_cam, dtype=torch.float32, device=self.device)
         self.depth_scale = scene.far - scene.near
         self.step = 0
-        self.edge_weights = self._edge_weights() if cfg.edge_rays > 0 else None
 
     # -- one step ---------------------------------------------------------------------------
 
-    def _edge_weights(self) -> torch.Tensor:
-        """[N, H * W] per input view, the mean absolute colour difference of each pixel to its
-        right and lower neighbours (0 at the last column / row)."""
-        img = torch.as_tensor(self.scene.images)  # [N, H, W, 3]
-        g = torch.zeros(img.shape[:3])
-        g[:, :, :-1] += (img[:, :, 1:] - img[:, :, :-1]).abs().mean(-1)
-        g[:, :-1] += (img[:, 1:] - img[:, :-1]).abs().mean(-1)
-        return g.reshape(len(img), -1)
-
-    def _random_pixels(
-        self, gen: torch.Generator, n: int, view: int | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """n random pixel indices and their centre coordinates [n, 2]: uniform, or for an input
-        ``view`` with ``edge_rays`` > 0 that share of them drawn by the photo's gradient."""
+    def _random_pixels(self, gen: torch.Generator, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """n random pixel indices and their centre coordinates [n, 2]."""
         w, h = self.scene.cameras.width, self.scene.cameras.height
-        n_edge = round(n * self.cfg.edge_rays) if view is not None and self.edge_weights is not None else 0
-        idx = torch.randint(0, w * h, (n - n_edge,), generator=gen)
-        if n_edge:
-            edge = torch.multinomial(self.edge_weights[view], n_edge, replacement=True, generator=gen)
-            idx = torch.cat([idx, edge])
-        idx = idx.to(self.device)
+        idx = torch.randint(0, w * h, (n,), generator=gen).to(self.device)
         uv = torch.stack([idx % w, idx // w], -1).float() + 0.5
         return idx, uv
 
@@ -149,7 +131,7 @@ class Trainer:
         # Target cameras of this step: every input view, then the unseen poses.
         groups, targets = [], []
         for j in range(len(self.scene)):
-            idx, uv = self._random_pixels(gen, cfg.rays_per_view, j)
+            idx, uv = self._random_pixels(gen, cfg.rays_per_view)
             groups.append((self.K[j], self.poses[j], uv))
             targets.append(self.images[j][idx])
         use_unseen = full and (lc.lambda_ac > 0 or lc.lambda_dc > 0)
