@@ -35,7 +35,7 @@ multiply-adds may fuse (``fastmath={"contract"}``, nothing else). Work it skips,
   tap is that texel can have any alpha (its four taps: the texel, its right, lower and
   lower-right neighbours). Elsewhere the sample is exactly zero (premultiplied colour). The
   bake stores alpha under 1 % as 0 (:data:`cmc.baking.ALPHA_FLOOR`), which clears the reach
-  bits of faint fog: 25 % less time on fern.
+  bits of faint fog: 22 % less time on fern.
 * **opaque rays**: a ray leaves its block's live rays once its transmittance is below
   ``min_transmittance`` (default 1e-4); what is left changes a pixel by less than that.
 
