@@ -111,9 +111,6 @@ class PyramidFieldConfig:
     # probability above stereo_hidden_confidence, at the texel and at the farther surface.
     stereo_hidden_radius: float = 0.0
     stereo_hidden_confidence: float = 0.0
-    # The hidden layer continues the nearest farther surface of the neighbourhood instead of the
-    # farthest (with several layers, e.g. fronds before fronds before a wall, the next one behind).
-    stereo_hidden_nearest: bool = False
 
 
 def plane_group_bounds(num_planes: int, groups: int) -> list[int]:

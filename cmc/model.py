@@ -106,9 +106,7 @@ class CMCModel(nn.Module):
                     )
                     if cfg.pyramid.stereo_hidden_radius > 0:
                         radius = max(1, round(cfg.pyramid.stereo_hidden_radius * w))
-                        init_alpha, front, edge = layered_alpha(
-                            probs, radius, cfg.pyramid.stereo_hidden_confidence, cfg.pyramid.stereo_hidden_nearest
-                        )
+                        init_alpha, front, edge = layered_alpha(probs, radius, cfg.pyramid.stereo_hidden_confidence)
                         front = torch.where(edge, front, cfg.num_planes)  # elsewhere the photo stays
                         rgb = hidden_layer_colours(rgb, front, cfg.num_planes, cfg.pyramid.base_groups)
                     else:

@@ -145,7 +145,7 @@ def alpha_from_weights(weights: torch.Tensor, lo: float = 0.01, hi: float = 0.99
 
 
 def layered_alpha(
-    weights: torch.Tensor, radius: int, confidence: float = 0.0, nearest: bool = False
+    weights: torch.Tensor, radius: int, confidence: float = 0.0
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Alphas from plane-sweep probabilities ``[D, h, w]`` with a hidden background layer behind
     foreground edges, and the visible plane of each texel.
@@ -166,15 +166,9 @@ def layered_alpha(
     smooth = F.pad(front[None, None].float(), (1, 1, 1, 1), mode="replicate")
     smooth = F.unfold(smooth, 3).median(1).values.reshape(front.shape)
     smooth = torch.where(sure, smooth, torch.full_like(smooth, -1.0))
-    k = torch.arange(weights.shape[0], device=weights.device)[:, None, None]
-    if nearest:
-        # The nearest surface of the neighbourhood more than one plane behind the texel's own.
-        present = F.max_pool2d((smooth == k).float()[None], 2 * radius + 1, stride=1, padding=radius)[0] > 0
-        behind = present & (k > front + 1)
-        back = torch.where(behind.any(0), behind.float().argmax(0), -1)
-    else:
-        back = F.max_pool2d(smooth[None, None], 2 * radius + 1, stride=1, padding=radius)[0, 0].long()
+    back = F.max_pool2d(smooth[None, None], 2 * radius + 1, stride=1, padding=radius)[0, 0].long()
     edge = sure & (back > front + 1)
+    k = torch.arange(weights.shape[0], device=weights.device)[:, None, None]
     hidden = (k > front) & edge  # planes behind the surface of an edge texel
     alpha = torch.where(hidden, torch.where(k == back, 0.99, 0.01), alpha)
     return alpha, front, edge

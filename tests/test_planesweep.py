@@ -195,22 +195,3 @@ def test_layered_alpha_leaves_unsure_texels_alone():
     assert edge[12, 12] and alpha[9, 12, 12] == 0.99  # its sure neighbour still gets the wall
     assert not edge[4, 4]  # the outlier gives the wall near it no layer at plane 11
     assert torch.all(alpha[11, 10:14, 10:14][edge[10:14, 10:14]] == 0.01)
-
-
-def test_layered_alpha_can_continue_the_nearest_surface_behind():
-    """Fronds before fronds before a wall: beside both a nearer strip (plane 6) and the wall
-    (plane 11), the square's texel (plane 3) gets the wall behind it by default (the farthest
-    surface around) and the strip with ``nearest`` (the next surface behind it)."""
-    D = 12
-    k = torch.full((40, 40), 11)
-    k[10:30, 10:30] = 3
-    k[10:30, 25:30] = 6
-    probs = torch.nn.functional.one_hot(k, D).permute(2, 0, 1).float() * 0.97 + 0.03 / D
-    farthest, _, edge_f = layered_alpha(probs, radius=4)
-    nearest, _, edge_n = layered_alpha(probs, radius=4, nearest=True)
-    assert torch.equal(edge_f, edge_n)
-    y, x = 12, 24  # 3 texels from the wall above, 1 from the strip
-    assert farthest[11, y, x] == 0.99 and farthest[6, y, x] == 0.01
-    assert nearest[6, y, x] == 0.99 and nearest[11, y, x] == 0.01
-    y, x = 12, 12  # only the wall around
-    assert nearest[11, y, x] == 0.99 and torch.equal(nearest[:, y, x], farthest[:, y, x])
