@@ -887,11 +887,11 @@ def main() -> None:
     if demo and demo_before:
         out += [
             "## README demo (synthetic layered scene, 3 views at 240x180, CPU)\n",
-            "Command: `cmc demo --out /tmp/demo_full` (its summary.json copied to bench/demo_cpu.json; the "
-            "first view-quality preset's to bench/demo_cpu_before.json).  \n"
+            "Command: `make demo`, i.e. `cmc demo --out demo-output` (its summary.json copied to "
+            "bench/demo_cpu.json; the first view-quality preset's to bench/demo_cpu_before.json).  \n"
             "Machine: the same 2-core CPU box, no GPU, nothing else running. "
-            "Date: 2026-11-24, `fast` with 4096 rays per view (before: 2026-11-23, the `fast` preset of the "
-            "first view-quality session).\n",
+            "Date: 2026-11-24, `fast` with 4096 rays per view, baked with the alpha floor (before: 2026-11-23, "
+            "the `fast` preset of the first view-quality session).\n",
             f"- training: {demo['steps']} steps in {demo['train_seconds']:.0f} s "
             f"(before: {demo_before['train_seconds']:.0f} s)",
             f"- novel view (between input cameras) vs exact ground truth: {demo['novel_view_psnr_db']:.2f} dB PSNR "
