@@ -495,7 +495,7 @@ def view_quality_section() -> list[str]:
             f"Mean PSNR gain: halfway {gain['halfway']:+.2f} dB (target >= +3), near {gain['near']:+.2f} dB "
             "(target: not worse).\n",
         ]
-        prev = load("view_quality_synthetic_cvc.json")
+        prev = load("view_quality_synthetic_rays.json")
         if "beyond" in sa["mean"] and prev:
             out.append(
                 f"Beyond the inputs (not scored in the before run): {sa['mean']['beyond']['psnr']:.2f} dB against "
