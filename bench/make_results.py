@@ -61,6 +61,9 @@ AFTER_NOTE = (
     "trained the same model, and a rerun of it the same day scored exactly as its report; only the "
     "bake differs.\n"
 )
+# The previous `fast` (4096 rays, baked without the alpha floor): the same training as now.
+FERN_PREV = "view_quality_fern_rays.json"
+SYN_PREV = "view_quality_synthetic_rays.json"
 RAYS_LABEL = "the previous `fast`: 4096 rays per input view and step instead of 2048 (`rays_per_view=4096`)"
 HIDDEN_LABEL = (
     "the previous `fast`: + hidden layers behind confidently placed outlines "
@@ -328,7 +331,7 @@ VQ_ABLATION = [
         "adopted: halfway -0.12 dB, beyond -0.07 dB)",
     ),
     ("view_quality_synthetic_cvc.json", CVC_LABEL),
-    ("view_quality_synthetic_rays.json", RAYS_LABEL),
+    (SYN_PREV, RAYS_LABEL),
     (SYN_AFTER, NOW_LABEL),
     (
         "view_quality_synthetic_hnear.json",
@@ -495,7 +498,7 @@ def view_quality_section() -> list[str]:
             f"Mean PSNR gain: halfway {gain['halfway']:+.2f} dB (target >= +3), near {gain['near']:+.2f} dB "
             "(target: not worse).\n",
         ]
-        prev = load("view_quality_synthetic_rays.json")
+        prev = load(SYN_PREV)
         if "beyond" in sa["mean"] and prev:
             out.append(
                 f"Beyond the inputs (not scored in the before run): {sa['mean']['beyond']['psnr']:.2f} dB against "
@@ -1124,8 +1127,8 @@ def main() -> None:
             f"{max(a['depth_max_rel'] for a in blocks['agreement_with_torch']):.1e} (targets >= 45 dB, <= 1e-3)\n",
         ]
     floor = load("render_floor_cpu.json")
-    fern_now, fern_prev = load(FERN_AFTER), load("view_quality_fern_rays.json")
-    syn_now, syn_prev = load(SYN_AFTER), load("view_quality_synthetic_rays.json")
+    fern_now, fern_prev = load(FERN_AFTER), load(FERN_PREV)
+    syn_now, syn_prev = load(SYN_AFTER), load(SYN_PREV)
     if floor and fern_now and fern_prev and syn_now and syn_prev:
         after, before = floor["overall"], floor["before"]
         agree_old = before["agreement_with_after"]

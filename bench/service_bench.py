@@ -20,8 +20,9 @@ one after the other by the worker) and, with ``--baked DIR``, replaces each scen
 before the first render (a full ``fast`` bake, as bench/render_speed.py builds: the renderer's
 cost depends on the alphas, and a few training steps leave them unlike a trained scene's). Then:
 
-5. Encoding, in this process, of a render of the first scene: PNG (compress levels 0, 1, 6),
-   JPEG (quality 90 and 80), the 16-bit depth PNG and the float32 ``.npy``: median ms and bytes.
+5. Encoding, in this process, of a render of the first scene: the service's PNG, JPEG (quality
+   90), 16-bit depth PNG and float32 ``.npy``, and for comparison Pillow's PNG (compress levels
+   0, 1, 6) and JPEG quality 80: median ms and bytes.
 6. Load: for 1, 20 and 50 concurrent clients (``--clients``), each sending
    ``--requests-per-client`` render requests one after the other (held-out views in turn), first
    all to one scene, then to the scenes round-robin, after one warm-up render per scene (cache
