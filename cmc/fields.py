@@ -111,10 +111,6 @@ class PyramidFieldConfig:
     # probability above stereo_hidden_confidence, at the texel and at the farther surface.
     stereo_hidden_radius: float = 0.0
     stereo_hidden_confidence: float = 0.0
-    # > 0: alpha also gets detail that follows the reference photo's edges: per plane, a level of
-    # 3 coefficients at this scale times the photo's high-pass (what a level at this scale cannot
-    # hold), added to the alpha logit -- the local linear model of a guided filter, learnt. 0: off.
-    alpha_guide_scale: float = 0.0
 
 
 def plane_group_bounds(num_planes: int, groups: int) -> list[int]:
@@ -139,8 +135,6 @@ class PyramidPlaneField(MPIField):
             [G, 3, h, w], one per base group.
         init_alpha: optional [D, h0, w0] initial alpha of each plane (any size; resampled to the
             finest level). Without it alpha starts at 1 / (D - k): equal composite weights.
-        guide: [3, h, w] the reference photo on the plane extent in [0, 1]; needed when
-            ``cfg.alpha_guide_scale`` > 0.
     """
 
     def __init__(
@@ -151,7 +145,6 @@ class PyramidPlaneField(MPIField):
         cfg: PyramidFieldConfig,
         init_rgb: torch.Tensor,
         init_alpha: torch.Tensor | None = None,
-        guide: torch.Tensor | None = None,
     ):
         super().__init__()
         self.num_planes = num_planes
@@ -178,15 +171,6 @@ class PyramidPlaneField(MPIField):
             elif init_alpha is None and n == len(cfg.scales) - 1:
                 lvl[:, 3] = alpha0[:, None, None]
             self.levels.append(nn.Parameter(lvl))
-        self.guide_coef: nn.Parameter | None = None
-        if cfg.alpha_guide_scale > 0:
-            if guide is None:
-                raise ConfigError("alpha_guide_scale > 0 needs the reference photo as guide")
-            g = F.interpolate(guide.float()[None], size=(height, width), mode="bilinear", align_corners=False)
-            low = F.interpolate(g, size=size(cfg.alpha_guide_scale), mode="area")
-            hp = g - F.interpolate(low, size=(height, width), mode="bilinear", align_corners=False)
-            self.register_buffer("guide_highpass", hp / hp.std().clamp_min(1e-6))  # [1, 3, h, w], unit std
-            self.guide_coef = nn.Parameter(torch.zeros(num_planes, 3, *size(cfg.alpha_guide_scale)))
 
     def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
         D = g.shape[1]
@@ -203,10 +187,6 @@ class PyramidPlaneField(MPIField):
         logits = sum(F.grid_sample(lvl, grid, align_corners=False)[:, :, 0] for lvl in self.levels)  # [D, 4, R]
         color = logits[:, :3] + base  # type: ignore[index]
         alpha = logits[:, 3]  # type: ignore[index]
-        if self.guide_coef is not None:
-            hp = F.grid_sample(self.guide_highpass, grid.reshape(1, 1, -1, 2), align_corners=False)
-            coef = F.grid_sample(self.guide_coef, grid, align_corners=False)[:, :, 0]  # [D, 3, R]
-            alpha = alpha + (coef * hp.reshape(3, D, -1).transpose(0, 1)).sum(1)
         return torch.sigmoid(color.permute(2, 0, 1)), _opaque_back(torch.sigmoid(alpha.T))
 
     def smoothness(self) -> torch.Tensor:

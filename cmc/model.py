@@ -91,7 +91,6 @@ class CMCModel(nn.Module):
                 fields.append(MLPField(cfg.num_planes, cfg.mlp))
             elif cfg.field_type == "pyramid":
                 init_alpha, rgb = None, padded_reference(scene.images[i], fr)
-                photo = rgb
                 if cfg.pyramid.stereo_init:
                     h, w = (max(2, round(e * cfg.pyramid.scales[0])) for e in fr.extent)
                     probs = plane_sweep_weights(
@@ -112,7 +111,7 @@ class CMCModel(nn.Module):
                         rgb = hidden_layer_colours(rgb, front, cfg.num_planes, cfg.pyramid.base_groups)
                     else:
                         init_alpha = alpha_from_weights(probs)
-                fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha, photo))
+                fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha))
             else:
                 raise ValueError(f"unknown field type {cfg.field_type!r}")
         self.fields = nn.ModuleList(fields).to(device)
