@@ -111,6 +111,10 @@ class PyramidFieldConfig:
     # probability above stereo_hidden_confidence, at the texel and at the farther surface.
     stereo_hidden_radius: float = 0.0
     stereo_hidden_confidence: float = 0.0
+    # True: the base colours of the groups behind each texel's visible surface (the sweep's most
+    # probable plane) start as the background continued from nearby (cmc.model.hidden_layer_colours)
+    # at every texel; False: only at the texels given a hidden layer (none when that radius is 0).
+    stereo_hidden_colour_everywhere: bool = False
 
 
 def plane_group_bounds(num_planes: int, groups: int) -> list[int]:

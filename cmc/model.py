@@ -107,10 +107,14 @@ class CMCModel(nn.Module):
                     if cfg.pyramid.stereo_hidden_radius > 0:
                         radius = max(1, round(cfg.pyramid.stereo_hidden_radius * w))
                         init_alpha, front, edge = layered_alpha(probs, radius, cfg.pyramid.stereo_hidden_confidence)
-                        front = torch.where(edge, front, cfg.num_planes)  # elsewhere the photo stays
-                        rgb = hidden_layer_colours(rgb, front, cfg.num_planes, cfg.pyramid.base_groups)
                     else:
-                        init_alpha = alpha_from_weights(probs)
+                        init_alpha, front, edge = alpha_from_weights(probs), probs.argmax(0), None
+                    if cfg.pyramid.stereo_hidden_colour_everywhere:
+                        rgb = hidden_layer_colours(rgb, front, cfg.num_planes, cfg.pyramid.base_groups)
+                    elif edge is not None:  # elsewhere the photo stays on every plane
+                        rgb = hidden_layer_colours(
+                            rgb, torch.where(edge, front, cfg.num_planes), cfg.num_planes, cfg.pyramid.base_groups
+                        )
                 fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha))
             else:
                 raise ValueError(f"unknown field type {cfg.field_type!r}")
