@@ -48,22 +48,24 @@ FERN_CMD = (
     "CMC_LPIPS_DIR=../shared/weights cmc bench llff --data ../shared/datasets/llff --scenes fern "
     "--out bench/{} --save-dir /tmp/runs"
 )
-# The `fast` preset now: the training of the previous row, baked with alpha under 1 % stored as 0
-# (cmc.baking.ALPHA_FLOOR).
-FERN_AFTER = "view_quality_fern_floor.json"
-SYN_AFTER = "view_quality_synthetic_floor.json"
+# The `fast` preset now: the background's colour continued behind every visible surface
+# (model.pyramid.stereo_hidden_colour_everywhere).
+FERN_AFTER = "view_quality_fern_hcolour.json"
+SYN_AFTER = "view_quality_synthetic_hcolour.json"
 FERN_AFTER_FLAGS = ""
 SYN_AFTER_FLAGS = ""
 AFTER_NOTE = (
     "These runs had the CPU to themselves, on two threads; most earlier rows of the table below ran "
     "on one thread while other work used the CPU at times, so compare train seconds within a "
-    "session only. Training is deterministic: the previous `fast` (4096 rays, the row above the last) "
-    "trained the same model, and a rerun of it the same day scored exactly as its report; only the "
-    "bake differs.\n"
+    "session only. Training is deterministic: a rerun of the previous `fast` the same day scored "
+    "exactly as its report.\n"
 )
-# The previous `fast` (4096 rays, baked without the alpha floor): the same training as now.
-FERN_PREV = "view_quality_fern_rays.json"
-SYN_PREV = "view_quality_synthetic_rays.json"
+# The previous `fast`: the training of the 4096-rays row, baked with alpha under 1 % stored as 0
+# (cmc.baking.ALPHA_FLOOR); the two reports of the bake-floor section of issue 10.
+FERN_PREV = "view_quality_fern_floor.json"
+SYN_PREV = "view_quality_synthetic_floor.json"
+FLOOR_FERN_BEFORE = "view_quality_fern_rays.json"
+FLOOR_SYN_BEFORE = "view_quality_synthetic_rays.json"
 RAYS_LABEL = "the previous `fast`: 4096 rays per input view and step instead of 2048 (`rays_per_view=4096`)"
 HIDDEN_LABEL = (
     "the previous `fast`: + hidden layers behind confidently placed outlines "
@@ -73,9 +75,14 @@ CVC_LABEL = (
     "the previous `fast`: the colour gradients each MPI gets from the other input views scaled by 0.25 "
     "(`loss.cross_view_colour=0.25`)"
 )
-NOW_LABEL = (
-    "**`fast` now**: the same training, baked with alpha under 1 % stored as 0 (`cmc.baking.ALPHA_FLOOR`; "
+FLOOR_LABEL = (
+    "the previous `fast`: the same training, baked with alpha under 1 % stored as 0 (`cmc.baking.ALPHA_FLOOR`; "
     'baked renders 1.29x faster: section "Serving cost (issue 10): faint alpha cleared at bake time")'
+)
+NOW_LABEL = (
+    "**`fast` now**: behind every texel's visible surface, the base colours of the farther plane groups start "
+    "as the background continued from nearby, not only behind confidently placed outlines "
+    "(`model.pyramid.stereo_hidden_colour_everywhere`)"
 )
 BG4_LABEL = "the previous `fast`: + a base colour per group of 12 planes (`model.pyramid.base_groups=4`)"
 ENTROPY_LABEL = "the previous `fast`: + alpha entropy prior 0.01 (`cmc.losses.alpha_entropy`)"
@@ -177,7 +184,8 @@ FERN_STEPS = [
         "hidden_all",
         "`fast` now + hidden layers behind every outline, no confidence gate (not adopted: -0.76 dB, LPIPS-vgg "
         "+0.068; the sweep is unsure almost everywhere on fern, so 87 % of texels got a layer; its colour fill also "
-        "reached texels beyond the radius, which today's code no longer does)",
+        "reached texels beyond the radius, as `stereo_hidden_colour_everywhere` does, so its flags here do not "
+        "rerun it exactly)",
     ),
     (
         "hidden_alpha",
@@ -256,6 +264,15 @@ FERN_STEPS = [
         "of the farthest (not adopted: the same scores here, where 16 % of texels get a layer; synthetic halfway "
         "-0.48 dB; the option was removed; code: commit 239e737)",
     ),
+    ("floor", FLOOR_LABEL),
+    ("base", "the previous `fast`, rerun in a later session (the same scores)"),
+    (
+        "alphaguide",
+        "the previous `fast` + alpha detail following the reference photo's edges: per plane, a half-resolution "
+        "level of three coefficients times the photo's high-pass, added to the alpha logit (a guided filter's "
+        "local linear model, learnt) (not adopted: the same PSNR and SSIM, LPIPS-alex +0.005, 1.3x the training; "
+        "the fit to the inputs improved, the test views did not; code: commit f978229)",
+    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
@@ -322,7 +339,8 @@ VQ_ABLATION = [
     (
         "view_quality_synthetic_hidden_all.json",
         "... + hidden layers behind every outline, no confidence gate (not adopted: best here, halfway +2.2 dB, "
-        "but fern -0.76 dB; its colour fill also reached texels beyond the radius, which today's code no longer does)",
+        "but fern -0.76 dB; its colour fill also reached texels beyond the radius, as "
+        "`stereo_hidden_colour_everywhere` does, so its flags here do not rerun it exactly)",
     ),
     ("view_quality_synthetic_hidden.json", HIDDEN_LABEL),
     (
@@ -331,13 +349,14 @@ VQ_ABLATION = [
         "adopted: halfway -0.12 dB, beyond -0.07 dB)",
     ),
     ("view_quality_synthetic_cvc.json", CVC_LABEL),
-    (SYN_PREV, RAYS_LABEL),
-    (SYN_AFTER, NOW_LABEL),
+    (FLOOR_SYN_BEFORE, RAYS_LABEL),
+    (SYN_PREV, FLOOR_LABEL),
     (
         "view_quality_synthetic_hnear.json",
         "`fast` now with the hidden layers continuing the nearest farther surface of the neighbourhood instead "
         "of the farthest (not adopted: halfway -0.48 dB, every scene worse; fern the same; code: commit 239e737)",
     ),
+    (SYN_AFTER, NOW_LABEL),
 ]
 
 
@@ -354,6 +373,7 @@ ABSENT_MEANS = {
     "model.pyramid.stereo_hidden_radius": 0.0,
     "model.pyramid.stereo_hidden_confidence": 0.0,
     "loss.cross_view_colour": 1.0,
+    "model.pyramid.stereo_hidden_colour_everywhere": False,
 }
 
 
@@ -378,6 +398,7 @@ REMOVED_OPTIONS = {
     "loss.cross_view_visibility": False,
     "model.pyramid.stereo_hidden_cross_check": False,
     "model.pyramid.stereo_hidden_nearest": False,
+    "model.pyramid.alpha_guide_scale": 0.0,
 }
 
 
@@ -893,7 +914,7 @@ def main() -> None:
             "Command: `make demo`, i.e. `cmc demo --out demo-output` (its summary.json copied to "
             "bench/demo_cpu.json; the first view-quality preset's to bench/demo_cpu_before.json).  \n"
             "Machine: the same 2-core CPU box, no GPU, nothing else running. "
-            "Date: 2026-11-24, `fast` with 4096 rays per view, baked with the alpha floor (before: 2026-11-23, "
+            "Date: 2026-11-24, `fast` with the background's colour behind every surface (before: 2026-11-23, "
             "the `fast` preset of the first view-quality session).\n",
             f"- training: {demo['steps']} steps in {demo['train_seconds']:.0f} s "
             f"(before: {demo_before['train_seconds']:.0f} s)",
@@ -1127,8 +1148,8 @@ def main() -> None:
             f"{max(a['depth_max_rel'] for a in blocks['agreement_with_torch']):.1e} (targets >= 45 dB, <= 1e-3)\n",
         ]
     floor = load("render_floor_cpu.json")
-    fern_now, fern_prev = load(FERN_AFTER), load(FERN_PREV)
-    syn_now, syn_prev = load(SYN_AFTER), load(SYN_PREV)
+    fern_now, fern_prev = load(FERN_PREV), load(FLOOR_FERN_BEFORE)
+    syn_now, syn_prev = load(SYN_PREV), load(FLOOR_SYN_BEFORE)
     if floor and fern_now and fern_prev and syn_now and syn_prev:
         after, before = floor["overall"], floor["before"]
         agree_old = before["agreement_with_after"]
@@ -1144,7 +1165,7 @@ def main() -> None:
             "a sample. The bake now stores alpha of 2 or less (under 1 % opacity) as 0 "
             "(`cmc.baking.ALPHA_FLOOR`). The renderer is unchanged; this times it on the new bake against the "
             "bake of the same training without the floor (the view-quality section's rows of 4096 rays and "
-            "`fast` now), alternately in one process, "
+            "of the bake floor), alternately in one process, "
             f"{floor['repeats_per_view']} renders per view after a warm-up, {floor['threads']} threads per "
             "render.\n",
             f"Command: `{floor['command']}`  \n"
@@ -1183,7 +1204,7 @@ def main() -> None:
     out += load_section(
         load("service_load_blocks_cpu.json"),
         "## Render endpoint under load, with the renderer that skips empty blocks (issue 10, item 3)\n",
-        "the bake of the view-quality section's after run (`fast` now, fern, its `--save-dir`)",
+        "the bake of the view-quality section's row of 4096 rays (fern, its `--save-dir`)",
         "nothing else running",
     )
     out += load_section(
@@ -1197,7 +1218,7 @@ def main() -> None:
             load(f"service_load_floor{run}_cpu.json"),
             "## Render endpoint under load, faint alpha cleared at bake time and a faster PNG encoder "
             f"(issue 10, item 3; run {run} of 2, one after the other)\n",
-            "the bake of the view-quality section's after run (`fast` now: alpha under 1 % stored as 0, "
+            "the bake of the view-quality section's row of the bake floor (alpha under 1 % stored as 0, "
             "fern, its `--save-dir`; both runs were made on the tree of commit ad5e27e with the bake floor and "
             "the PNG encoder not yet committed, as the commit after it holds them)",
             "nothing else running",
