@@ -28,7 +28,8 @@ import torch
 
 from cmc.baking import BakedScene
 from cmc.bench import git_commit
-from cmc.datasets import load_llff
+from cmc.datasets import load_llff, regnerf_split
+from cmc.geometry import mean_baseline
 from cmc.metrics import image_metrics
 
 # Distance bins, in mean input baselines (mean distance between the three input cameras).
@@ -52,8 +53,7 @@ def inside_input_triangle(centres: np.ndarray, train: list[int]) -> np.ndarray:
 def distances_to_inputs(centres: np.ndarray, train: list[int]) -> np.ndarray:
     """Distance of each camera centre ([N, 3]) to the nearest input camera, in mean input baselines."""
     inputs = centres[train]
-    baseline = np.mean([np.linalg.norm(a - b) for i, a in enumerate(inputs) for b in inputs[i + 1 :]])
-    return np.linalg.norm(centres[:, None] - inputs[None], axis=-1).min(1) / baseline
+    return np.linalg.norm(centres[:, None] - inputs[None], axis=-1).min(1) / mean_baseline(inputs)
 
 
 def main() -> None:
@@ -63,12 +63,13 @@ def main() -> None:
     ap.add_argument("--out", default="bench/fern_every_view.json")
     args = ap.parse_args()
     torch.set_num_threads(os.cpu_count() or 1)
-    split = load_llff(args.data)
-    train, test = split.train_ids, split.test_ids
-    # With every non-test view as "training" view, the split holds the other fourteen photos too.
     num_images = len(np.load(Path(args.data) / "poses_bounds.npy"))
-    rest = load_llff(args.data, num_train=num_images - len(test))
-    full = {v: (rest.train, k) for k, v in enumerate(rest.train_ids)} | {v: (split.test, k) for k, v in enumerate(test)}
+    train, test = regnerf_split(num_images)
+    # Every non-test view as a "training" view: one load holds all the photos.
+    every = load_llff(args.data, num_train=num_images - len(test))
+    full = {v: (every.train, k) for k, v in enumerate(every.train_ids)} | {
+        v: (every.test, k) for k, v in enumerate(test)
+    }
     report: dict = {
         "command": "python bench/fern_every_view.py " + " ".join(f"--baked {b}" for b in args.baked),
         "date": datetime.date.today().isoformat(),
@@ -86,7 +87,7 @@ def main() -> None:
         for v in sorted(full):
             scene, k = full[v]
             out = baked.render(scene.cameras.K[k], scene.cameras.world_from_cam[k])
-            m = image_metrics(out.rgb.numpy(), scene.images[k], os.environ.get("CMC_LPIPS_DIR"))
+            m = image_metrics(out.rgb.numpy(), scene.images[k])  # LPIPS weights from $CMC_LPIPS_DIR
             kind = "input" if v in train else "protocol test" if v in test else "other"
             place = {"baselines_to_nearest_input": float(dist[v]), "inside_input_triangle": bool(inside[v])}
             views.append({"view": v, "kind": kind, **place, **m})
