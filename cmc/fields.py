@@ -99,10 +99,12 @@ class PyramidFieldConfig:
     base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
     base_groups: int = 1  # base colours: one per group of adjacent planes (1 to num_planes)
     stereo_init: bool = True  # start alpha from plane-sweep photo-consistency (cmc.planesweep)
-    # Softmin temperature of that prior (mean abs colour difference). At 0.05 the prior was nearly
+    # Softmin temperature of that prior (on the "ad" cost, mean abs colour difference; ``fast``
+    # uses 0.1 on "ad_census", whose cost is on another scale). At 0.05 the prior was nearly
     # flat (training started from fog); at 0.01 it keeps the sweep's depth (bench/DIAGNOSIS.md).
     stereo_temperature: float = 0.01
     stereo_occlusion_aware: bool = True  # that prior takes the best-matching other view, not the mean
+    stereo_cost: str = "ad"  # "ad" or "ad_census": the photo-consistency measure (cmc.planesweep)
     stereo_edge_sigma: float = 0.1  # > 0: edge-aware cost aggregation (cmc.planesweep), colour scale
     stereo_extend_border: bool = True  # the margin starts with the image border's geometry (cmc.planesweep)
     # > 0: behind a foreground outline, the farther surface within this fraction of the plane

@@ -103,6 +103,7 @@ class CMCModel(nn.Module):
                         occlusion_aware=cfg.pyramid.stereo_occlusion_aware,
                         edge_sigma=cfg.pyramid.stereo_edge_sigma or None,
                         extend_border=cfg.pyramid.stereo_extend_border,
+                        cost=cfg.pyramid.stereo_cost,
                     )
                     if cfg.pyramid.stereo_hidden_radius > 0:
                         radius = max(1, round(cfg.pyramid.stereo_hidden_radius * w))

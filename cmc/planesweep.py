@@ -9,6 +9,8 @@ plausible geometry instead of discovering one from uniform fog.
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -42,36 +44,47 @@ def plane_sweep_weights(
     occlusion_aware: bool = False,
     edge_sigma: float | None = None,
     extend_border: bool = False,
+    cost: str = "ad",
 ) -> torch.Tensor:
     """Per-texel probability that each plane of MPI ``ref`` holds the visible surface.
 
-    The cost of a plane at a texel is the absolute colour difference between the reference
-    photo and another view, averaged over a ``window`` x ``window`` neighbourhood: uniformly, or
-    with ``edge_sigma`` weighted by ``exp(-|I(x) - I(y)| / edge_sigma)`` (mean absolute colour
-    difference of the reference photo between the texel and its neighbour), so that the costs of
-    a background do not leak across an object's outline (foreground fattening). The views' costs
-    are averaged, or with ``occlusion_aware`` the lowest is taken (a surface hidden from one
-    view by an occluder still matches in another). Texels no other view sees get a flat cost.
+        The cost of a plane at a texel compares the reference photo with another view warped onto
+        the plane: with ``cost="ad"`` the mean absolute colour difference; with ``"ad_census"``
+        that difference and the census distance (:func:`census_distance`), each mapped to [0, 1)
+        by ``1 - exp(-c / scale)`` and summed (AD-Census, Mei et al. 2011: the census term ranks
+        brightness within a patch, so it holds under the exposure and vignetting differences of
+        real photos; the colour term separates patches of the same texture but different colour).
+        It is averaged over a ``window`` x ``window`` neighbourhood: uniformly, or
+        with ``edge_sigma`` weighted by ``exp(-|I(x) - I(y)| / edge_sigma)`` (mean absolute colour
+        difference of the reference photo between the texel and its neighbour), so that the costs of
+        a background do not leak across an object's outline (foreground fattening). The views' costs
+        are averaged, or with ``occlusion_aware`` the lowest is taken (a surface hidden from one
+        view by an occluder still matches in another). Texels no other view sees get a flat cost, that
+    of a random match.
 
-    Texels of the margin (outside the reference image) hold no reference colour, only the
-    edge-extended photo, so their costs match streaks by chance (near-plane smears wherever a
-    target looks past an input's border). With ``extend_border`` they take the probabilities of
-    the nearest texel inside the image instead: the border's geometry continues outwards, as its
-    colour does.
+        Texels of the margin (outside the reference image) hold no reference colour, only the
+        edge-extended photo, so their costs match streaks by chance (near-plane smears wherever a
+        target looks past an input's border). With ``extend_border`` they take the probabilities of
+        the nearest texel inside the image instead: the border's geometry continues outwards, as its
+        colour does.
 
-    Args:
-        frames: the MPIFrames of all views; images: [N, 3, H, W] in [0, 1].
-        height, width: texel grid over the plane extent.
-        temperature: softmin temperature on the cost (mean absolute colour difference).
-    Returns:
-        [D, height, width] probabilities summing to 1 over planes.
+        Args:
+            frames: the MPIFrames of all views; images: [N, 3, H, W] in [0, 1].
+            height, width: texel grid over the plane extent.
+            temperature: softmin temperature on the cost (mean absolute colour difference for
+                "ad"; the sum of the two saturated terms, in [0, 2), for "ad_census").
+        Returns:
+            [D, height, width] probabilities summing to 1 over planes.
     """
     fr = frames[ref]
     uv_ref = texel_pixels(fr, height, width)  # [T, 2]
     ref_rgb, _ = sample_image(images[ref], uv_ref)
     D = fr.depths.shape[0]
+    if cost not in ("ad", "ad_census"):
+        raise ValueError(f"unknown plane-sweep cost {cost!r}; choose 'ad' or 'ad_census'")
+    ref_grid = ref_rgb.T.reshape(3, height, width)
     p = torch.cat([uv_ref, torch.ones_like(uv_ref[:, :1])], -1)
-    aggregate = _window_mean(ref_rgb.T.reshape(3, height, width), window, edge_sigma)
+    aggregate = _window_mean(ref_grid, window, edge_sigma)
     costs, seen = [], []
     for j, other in enumerate(frames):
         if j == ref:
@@ -82,7 +95,12 @@ def plane_sweep_weights(
         uv_j = q[..., :2] / q[..., 2:3].clamp_min(1e-6)
         rgb_j, inside = sample_image(images[j], uv_j)  # [D, T, 3]
         inside = (inside & (q[..., 2] > 0)).float().reshape(D, 1, height, width)
-        diff = (rgb_j - ref_rgb).abs().mean(-1).reshape(D, 1, height, width) * inside
+        diff = (rgb_j - ref_rgb).abs().mean(-1).reshape(D, 1, height, width)
+        if cost == "ad_census":
+            warped = rgb_j.reshape(D, height, width, 3).permute(0, 3, 1, 2)
+            census = census_distance(ref_grid, warped)
+            diff = (1 - torch.exp(-diff / AD_SCALE)) + (1 - torch.exp(-census[:, None] / CENSUS_SCALE))
+        diff = diff * inside
         # Window-averaged cost over the texels this view sees (sum of costs / weight seen).
         frac = aggregate(inside[:, 0])
         costs.append(aggregate(diff[:, 0]) / frac.clamp_min(1e-6))
@@ -92,7 +110,10 @@ def plane_sweep_weights(
         c = torch.where(seen_t, cost, torch.full_like(cost, float("inf"))).amin(0)
     else:
         c = (cost * seen_t).sum(0) / seen_t.sum(0).clamp_min(1)
-    c = torch.where(seen_t.any(0), c, torch.full_like(c, 0.5))
+    # A plane no other view sees costs what a random match would: colour difference 0.5, and
+    # half the census bits.
+    flat = 0.5 if cost == "ad" else 2 - math.exp(-0.5 / AD_SCALE) - math.exp(-0.5 / CENSUS_SCALE)
+    c = torch.where(seen_t.any(0), c, torch.full_like(c, flat))
     probs = torch.softmax(-c / temperature, dim=0)
     if extend_border:
         uv = uv_ref.reshape(height, width, 2)
@@ -100,6 +121,37 @@ def plane_sweep_weights(
         cols = _nearest_inside(uv[0, :, 0], fr.width)
         probs = probs[:, rows][:, :, cols]
     return probs
+
+
+# Scales of the two terms of the "ad_census" cost (mean absolute colour difference in [0, 1]; share
+# of census bits that differ). Chosen on the plane sweep alone (share of texels whose best plane
+# lies within one plane of the known depth, bench/DIAGNOSIS.md), on the synthetic scenes and
+# fern's SfM points together.
+AD_SCALE = 0.05
+CENSUS_SCALE = 0.3
+CENSUS_RADIUS = 3
+
+
+def census_distance(ref: torch.Tensor, warped: torch.Tensor, radius: int = CENSUS_RADIUS) -> torch.Tensor:
+    """Census distance between a reference image [3, h, w] and warped images [D, 3, h, w]: the
+    share of the (2 * radius + 1)^2 - 1 neighbours whose brightness (mean of the channels)
+    relative to the centre texel differs in sign between the two -> [D, h, w] in [0, 1].
+    Borders are replicated."""
+    h, w = ref.shape[-2:]
+    g_ref, g_w = ref.mean(0, keepdim=True)[None], warped.mean(1, keepdim=True)
+    p_ref = F.pad(g_ref, (radius,) * 4, mode="replicate")
+    p_w = F.pad(g_w, (radius,) * 4, mode="replicate")
+    total = torch.zeros(warped.shape[0], h, w, dtype=warped.dtype, device=warped.device)
+    n = 0
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            if dy == radius and dx == radius:
+                continue
+            bit_ref = p_ref[..., dy : dy + h, dx : dx + w] > g_ref
+            bit_w = p_w[..., dy : dy + h, dx : dx + w] > g_w
+            total += (bit_ref != bit_w)[:, 0]
+            n += 1
+    return total / n
 
 
 def _nearest_inside(coords: torch.Tensor, size: int) -> torch.Tensor:

@@ -8,7 +8,7 @@ import torch
 from cmc.datasets import Layer, render_layers, synthetic_cameras
 from cmc.geometry import plane_depths
 from cmc.model import hidden_layer_colours
-from cmc.planesweep import alpha_from_weights, layered_alpha, plane_sweep_weights
+from cmc.planesweep import alpha_from_weights, census_distance, layered_alpha, plane_sweep_weights
 from cmc.rendering import MPIFrame, composite
 
 
@@ -195,3 +195,42 @@ def test_layered_alpha_leaves_unsure_texels_alone():
     assert edge[12, 12] and alpha[9, 12, 12] == 0.99  # its sure neighbour still gets the wall
     assert not edge[4, 4]  # the outlier gives the wall near it no layer at plane 11
     assert torch.all(alpha[11, 10:14, 10:14][edge[10:14, 10:14]] == 0.01)
+
+
+def test_census_distance_ignores_gain_and_offset_but_not_a_shift():
+    """Census compares the brightness order within a patch: the same texture under another
+    exposure costs 0, the texture moved by two texels costs much more."""
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(3, 24, 32, generator=g)
+    same = census_distance(img, (0.6 * img + 0.2)[None])
+    shifted = census_distance(img, torch.roll(img, 2, dims=-1)[None])
+    assert same.abs().max() == 0
+    assert shifted[0, :, 4:-4].mean() > 0.3
+
+
+def _wall_under_exposure_change(cost: str, temperature: float) -> float:
+    """A textured wall at z = 4 as in test_wall_is_found_on_its_plane, but the two other photos
+    brighter (gain 1.4, darker corners: the exposure and vignetting differences of real
+    cameras). Returns the share of central texels of the middle view whose best plane is within
+    one plane of the wall."""
+    cams = synthetic_cameras(3, width=96, height=72, baseline=0.6)
+    images, depth = render_layers((Layer(4.0, (-1e3, 1e3, -1e3, 1e3), 5),), cams)
+    v, u = np.mgrid[0:72, 0:96]
+    vignette = 1 - 0.3 * (((u - 48) / 48) ** 2 + ((v - 36) / 36) ** 2) / 2
+    imgs = torch.as_tensor(images).permute(0, 3, 1, 2).clone()
+    for j in (0, 2):
+        imgs[j] = (imgs[j] * 1.4 * torch.as_tensor(vignette, dtype=imgs.dtype)).clamp(0, 1)
+    near, far, D = 2.0, 8.0, 24
+    frames = [MPIFrame.create(cams.K[i], cams.world_from_cam[i], near, far, D, 96, 72, 1.0) for i in range(3)]
+    w = plane_sweep_weights(frames, imgs, 1, 72, 96, temperature=temperature, cost=cost)
+    true_plane = int(np.abs(plane_depths(near, far, D) - depth[1, 36, 48]).argmin())
+    return float((w.argmax(0)[20:52, 30:66] - true_plane).abs().le(1).float().mean())
+
+
+def test_ad_census_cost_finds_the_wall_under_an_exposure_change():
+    """The colour difference alone is misled by the brighter photos; with the census term the
+    sweep still puts the wall on its plane."""
+    ad = _wall_under_exposure_change("ad", 0.01)
+    ad_census = _wall_under_exposure_change("ad_census", 0.1)
+    assert ad_census > 0.9, (ad_census, ad)
+    assert ad_census > ad + 0.2, (ad_census, ad)

@@ -133,9 +133,9 @@ def test_distortion_prior_concentrates_opacity():
     scene = synthetic_scene(3, W, H)
     base = preset_config("fast", steps=60, rays_per_view=512, unseen_rays=256)
     # The alpha entropy prior off: it concentrates opacity too, and this measures the distortion's.
-    base = with_settings(
-        base, ["model.num_planes=16", "model.pyramid.stereo_temperature=0.05", "loss.lambda_alpha_entropy=0"]
-    )
+    # Foggy start: the colour-difference cost at a temperature that flattens it.
+    foggy = ["model.pyramid.stereo_cost=ad", "model.pyramid.stereo_temperature=0.05"]
+    base = with_settings(base, ["model.num_planes=16", *foggy, "loss.lambda_alpha_entropy=0"])
     results = {}
     for lam in (0.0, 0.05):
         trainer = Trainer(scene, replace(base, loss=replace(base.loss, lambda_distortion=lam)))
@@ -296,9 +296,11 @@ def test_hidden_layers_put_the_wall_behind_the_outlines():
     the plane sweep's cost curve left behind the occluder (the photo's occluder colour on far
     planes: a smear); with the wall continued behind confidently placed outlines
     (``model.pyramid.stereo_hidden_radius``, ``stereo_hidden_confidence``) the wall next to the
-    outlines has its depth and the halfway and beyond views are better (when this was written,
-    84x63, 100 steps: depth error in that band 0.071 -> 0.045 halfway, 0.081 -> 0.053 beyond;
-    PSNR +0.58 dB halfway, +0.48 dB beyond, +0.17 dB near)."""
+    outlines has its depth and the halfway and beyond views are better (84x63, 100 steps; when
+    this was written, with the colour-difference sweep: depth error in that band 0.071 -> 0.045
+    halfway, 0.081 -> 0.053 beyond, PSNR +0.58 dB halfway, +0.48 dB beyond, +0.17 dB near; with
+    the AD-Census sweep of ``fast`` now, which starts better without them: 0.055 -> 0.040 halfway,
+    0.063 -> 0.050 beyond, PSNR +0.17 dB, +0.19 dB, near the same)."""
     W2, H2 = 84, 63
     split = wide_baseline_split("posts", W2, H2)
     base = preset_config("fast", steps=100, rays_per_view=512, unseen_rays=256)
@@ -324,7 +326,7 @@ def test_hidden_layers_put_the_wall_behind_the_outlines():
     mean = {key: np.mean(v, 0) for key, v in scores.items()}
     for kind in ("halfway", "beyond"):
         (psnr0, err0), (psnr1, err1) = mean[(0.0, kind)], mean[(0.05, kind)]
-        assert psnr1 > psnr0 + 0.25 and err1 < 0.8 * err0, (kind, mean)
+        assert psnr1 > psnr0 + 0.1 and err1 < 0.85 * err0, (kind, mean)
     assert mean[(0.05, "near")][0] > mean[(0.0, "near")][0] - 0.1, mean  # near views not worse
 
 
