@@ -48,33 +48,33 @@ def plane_sweep_weights(
 ) -> torch.Tensor:
     """Per-texel probability that each plane of MPI ``ref`` holds the visible surface.
 
-        The cost of a plane at a texel compares the reference photo with another view warped onto
-        the plane: with ``cost="ad"`` the mean absolute colour difference; with ``"ad_census"``
-        that difference and the census distance (:func:`census_distance`), each mapped to [0, 1)
-        by ``1 - exp(-c / scale)`` and summed (AD-Census, Mei et al. 2011: the census term ranks
-        brightness within a patch, so it holds under the exposure and vignetting differences of
-        real photos; the colour term separates patches of the same texture but different colour).
-        It is averaged over a ``window`` x ``window`` neighbourhood: uniformly, or
-        with ``edge_sigma`` weighted by ``exp(-|I(x) - I(y)| / edge_sigma)`` (mean absolute colour
-        difference of the reference photo between the texel and its neighbour), so that the costs of
-        a background do not leak across an object's outline (foreground fattening). The views' costs
-        are averaged, or with ``occlusion_aware`` the lowest is taken (a surface hidden from one
-        view by an occluder still matches in another). Texels no other view sees get a flat cost, that
-    of a random match.
+    The cost of a plane at a texel compares the reference photo with another view warped onto
+    the plane: with ``cost="ad"`` the mean absolute colour difference; with ``"ad_census"`` that
+    difference and the census distance (:func:`census_distance`), each mapped to [0, 1) by
+    ``1 - exp(-c / scale)`` and summed (AD-Census, Mei et al. 2011: the census term ranks
+    brightness within a patch, so it holds under the exposure and vignetting differences of real
+    photos; the colour term separates patches of the same texture but different colour). It is
+    averaged over a ``window`` x ``window`` neighbourhood: uniformly, or with ``edge_sigma``
+    weighted by ``exp(-|I(x) - I(y)| / edge_sigma)`` (mean absolute colour difference of the
+    reference photo between the texel and its neighbour), so that the costs of a background do
+    not leak across an object's outline (foreground fattening). The views' costs are averaged,
+    or with ``occlusion_aware`` the lowest is taken (a surface hidden from one view by an
+    occluder still matches in another). Texels no other view sees get a flat cost, that of a
+    random match.
 
-        Texels of the margin (outside the reference image) hold no reference colour, only the
-        edge-extended photo, so their costs match streaks by chance (near-plane smears wherever a
-        target looks past an input's border). With ``extend_border`` they take the probabilities of
-        the nearest texel inside the image instead: the border's geometry continues outwards, as its
-        colour does.
+    Texels of the margin (outside the reference image) hold no reference colour, only the
+    edge-extended photo, so their costs match streaks by chance (near-plane smears wherever a
+    target looks past an input's border). With ``extend_border`` they take the probabilities of
+    the nearest texel inside the image instead: the border's geometry continues outwards, as its
+    colour does.
 
-        Args:
-            frames: the MPIFrames of all views; images: [N, 3, H, W] in [0, 1].
-            height, width: texel grid over the plane extent.
-            temperature: softmin temperature on the cost (mean absolute colour difference for
-                "ad"; the sum of the two saturated terms, in [0, 2), for "ad_census").
-        Returns:
-            [D, height, width] probabilities summing to 1 over planes.
+    Args:
+        frames: the MPIFrames of all views; images: [N, 3, H, W] in [0, 1].
+        height, width: texel grid over the plane extent.
+        temperature: softmin temperature on the cost (mean absolute colour difference for
+            "ad"; the sum of the two saturated terms, in [0, 2), for "ad_census").
+    Returns:
+        [D, height, width] probabilities summing to 1 over planes.
     """
     fr = frames[ref]
     uv_ref = texel_pixels(fr, height, width)  # [T, 2]
