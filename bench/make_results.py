@@ -93,6 +93,11 @@ ADC_NOHIDDEN_LABEL = (
     "`fast` now without the hidden layers (they still pay: synthetic halfway -0.54 dB, beyond -0.07 dB, near "
     "-0.07 dB; fern the same, +0.01 dB, LPIPS-vgg -0.002)"
 )
+# What the bakes of fern_every_view.json are (run before the AD-Census sweep; not rerun since).
+EVERY_VIEW_BAKES = {
+    "previous": "the `fast` before the background's colour behind every surface",
+    "now": "the next `fast`, with the background's colour behind every surface (before the AD-Census sweep)",
+}
 BG4_LABEL = "the previous `fast`: + a base colour per group of 12 planes (`model.pyramid.base_groups=4`)"
 ENTROPY_LABEL = "the previous `fast`: + alpha entropy prior 0.01 (`cmc.losses.alpha_entropy`)"
 FERN_STEPS = [
@@ -950,7 +955,7 @@ def main() -> None:
             "against its photo, grouped by the distance from its camera centre to the nearest input's, in mean "
             "input baselines. Nothing is trained or chosen on these views; they are reported only.\n",
             f"Command: `{every['command']}` (the bakes of the fern runs of the view-quality section: "
-            + ", ".join(f"{lab} = {'the previous `fast`' if lab == 'previous' else '`fast` now'}" for lab in labels)
+            + ", ".join(f"{lab} = {EVERY_VIEW_BAKES.get(lab, lab)}" for lab in labels)
             + f").  \nMachine: the same 2-core CPU box. Date: {every['date']}; git commit {every['git_commit']}.\n",
             "| distance (baselines) | views | "
             + " | ".join(f"{lab}: PSNR / SSIM / LPIPS-vgg" for lab in labels)
@@ -967,7 +972,7 @@ def main() -> None:
             )
         out += [
             "",
-            "Per view (`fast` now; * = protocol test view):\n",
+            f"Per view ({labels[-1]}; * = protocol test view):\n",
             "| view | baselines | inside the inputs' triangle | PSNR | SSIM | LPIPS-vgg |",
         ]
         out.append("|---|---|---|---|---|---|")
