@@ -104,6 +104,7 @@ class CMCModel(nn.Module):
                         edge_sigma=cfg.pyramid.stereo_edge_sigma or None,
                         extend_border=cfg.pyramid.stereo_extend_border,
                         cost=cfg.pyramid.stereo_cost,
+                        supersample=cfg.pyramid.stereo_supersample,
                     )
                     if cfg.pyramid.stereo_hidden_radius > 0:
                         radius = max(1, round(cfg.pyramid.stereo_hidden_radius * w))

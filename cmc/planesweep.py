@@ -45,6 +45,7 @@ def plane_sweep_weights(
     edge_sigma: float | None = None,
     extend_border: bool = False,
     cost: str = "ad",
+    supersample: int = 1,
 ) -> torch.Tensor:
     """Per-texel probability that each plane of MPI ``ref`` holds the visible surface.
 
@@ -73,9 +74,33 @@ def plane_sweep_weights(
         height, width: texel grid over the plane extent.
         temperature: softmin temperature on the cost (mean absolute colour difference for
             "ad"; the sum of the two saturated terms, in [0, 2), for "ad_census").
+        supersample: run the sweep on a grid this many times finer in each direction (the
+            window scaled with it) and average the probabilities back over each texel: a texel
+            straddling a depth edge then holds both surfaces in proportion, and thin structures
+            (fern's leaflets, 1-2 pixels wide) are matched at the photo's resolution.
     Returns:
         [D, height, width] probabilities summing to 1 over planes.
     """
+    if supersample < 1:
+        raise ValueError(f"plane-sweep supersample must be a whole number >= 1, got {supersample}")
+    if supersample > 1:
+        # The sweep on a grid ``supersample`` times finer, with the same window footprint (rounded
+        # down to an odd size); the probabilities are averaged back over each texel.
+        fine_window = window * supersample - (window * supersample + 1) % 2
+        fine = plane_sweep_weights(
+            frames,
+            images,
+            ref,
+            height * supersample,
+            width * supersample,
+            temperature,
+            fine_window,
+            occlusion_aware,
+            edge_sigma,
+            extend_border,
+            cost,
+        )
+        return F.avg_pool2d(fine[None], supersample)[0]
     fr = frames[ref]
     uv_ref = texel_pixels(fr, height, width)  # [T, 2]
     ref_rgb, _ = sample_image(images[ref], uv_ref)

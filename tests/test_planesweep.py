@@ -234,3 +234,20 @@ def test_ad_census_cost_finds_the_wall_under_an_exposure_change():
     ad_census = _wall_under_exposure_change("ad_census", 0.1)
     assert ad_census > 0.9, (ad_census, ad)
     assert ad_census > ad + 0.2, (ad_census, ad)
+
+
+def test_supersampled_sweep_is_a_distribution_on_the_coarse_grid():
+    """With supersample=2 the sweep runs on a 2x finer grid (window 9 for 5) and returns the
+    probabilities averaged over each texel of the requested grid: they sum to 1 and find the wall."""
+    cams = synthetic_cameras(3, width=96, height=72, baseline=0.6)
+    images, depth = render_layers((Layer(4.0, (-1e3, 1e3, -1e3, 1e3), 5),), cams)
+    near, far, D = 2.0, 8.0, 24
+    frames = [MPIFrame.create(cams.K[i], cams.world_from_cam[i], near, far, D, 96, 72, 1.0) for i in range(3)]
+    imgs = torch.as_tensor(images).permute(0, 3, 1, 2)
+    w = plane_sweep_weights(frames, imgs, 1, 36, 48, temperature=0.1, cost="ad_census", supersample=2)
+    assert w.shape == (D, 36, 48)
+    fine = plane_sweep_weights(frames, imgs, 1, 72, 96, temperature=0.1, window=9, cost="ad_census")
+    torch.testing.assert_close(w, torch.nn.functional.avg_pool2d(fine[None], 2)[0])
+    torch.testing.assert_close(w.sum(0), torch.ones(36, 48))
+    true_plane = int(np.abs(plane_depths(near, far, D) - depth[1, 36, 48]).argmin())
+    assert (w.argmax(0)[10:26, 15:33] - true_plane).abs().le(1).float().mean() > 0.9
