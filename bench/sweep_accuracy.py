@@ -9,7 +9,7 @@ the sweep alone, before any training, against depth it never saw:
   an input view (COLMAP image ids follow the sorted image names, as ``poses_bounds.npy`` rows do),
   triangulated from all 20 photos. Points sit on textured spots, so fern's shares are optimistic.
 
-Per cost: the share of targets whose best plane lies within 1 (and 2) plane spacings of the true
+Per cost (and sweep grid): the share of targets whose best plane lies within 1 (and 2) plane spacings of the true
 depth, and, after the softmin at the cost's temperature, the share of texels inside the image
 where the sweep is confident (most probable plane above 0.5, the hidden layers' gate) and the
 share of confident targets within one plane (precision). Nothing trains and nothing is rendered
@@ -38,8 +38,9 @@ from cmc.datasets import WIDE_SCENES, Scene, load_llff, wide_baseline_split
 from cmc.planesweep import plane_sweep_weights, texel_pixels
 from cmc.rendering import MPIFrame
 
-# (label, cost, softmin temperature): the previous `fast` start and the one of `fast` now.
-COSTS = (("ad", "ad", 0.01), ("ad_census", "ad_census", 0.1))
+# (label, cost, softmin temperature, supersample): the starts of the `fast` presets in turn; the
+# last is that of `fast` now (the sweep on a grid twice as fine as alpha's finest level).
+COSTS = (("ad", "ad", 0.01, 1), ("ad_census", "ad_census", 0.1, 1), ("ad_census_2x", "ad_census", 0.1, 2))
 
 
 def read_points3d(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -95,7 +96,7 @@ def score(scene: Scene, targets: list[tuple[np.ndarray, np.ndarray]]) -> dict[st
     images = torch.as_tensor(scene.images).permute(0, 3, 1, 2).float()
     counts = {
         label: dict.fromkeys(("within1", "within2", "targets", "sure", "inside", "sure_targets", "sure_right"), 0)
-        for label, _, _ in COSTS
+        for label, *_ in COSTS
     }
     for k, fr in enumerate(frames):
         h, w = (max(2, round(e * cfg.pyramid.scales[0])) for e in fr.extent)
@@ -108,7 +109,7 @@ def score(scene: Scene, targets: list[tuple[np.ndarray, np.ndarray]]) -> dict[st
         disparity = 1 / fr.depths.numpy()  # decreasing with the plane index
         true_plane = np.interp(1 / z, disparity[::-1], np.arange(len(disparity))[::-1].astype(float))
         p = cfg.pyramid
-        for label, cost, temperature in COSTS:
+        for label, cost, temperature, supersample in COSTS:
             probs = plane_sweep_weights(
                 frames,
                 images,
@@ -120,6 +121,7 @@ def score(scene: Scene, targets: list[tuple[np.ndarray, np.ndarray]]) -> dict[st
                 edge_sigma=p.stereo_edge_sigma or None,
                 extend_border=p.stereo_extend_border,
                 cost=cost,
+                supersample=supersample,
             )
             best, plane = probs.max(0)
             sure = (best > 0.5).numpy()
@@ -157,7 +159,7 @@ def main() -> None:
         "command": "python bench/sweep_accuracy.py",
         "date": datetime.date.today().isoformat(),
         "git_commit": git_commit(),
-        "costs": {label: {"cost": cost, "temperature": t} for label, cost, t in COSTS},
+        "costs": {label: {"cost": cost, "temperature": t, "supersample": ss} for label, cost, t, ss in COSTS},
         "scenes": scenes,
     }
     args.out.write_text(json.dumps(report, indent=1) + "\n")

@@ -84,7 +84,8 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       the first 30 %, then lambda_ac = lambda_dc = 1.
     * ``fast``: explicit multi-resolution plane textures (see cmc.fields.PyramidPlaneField),
       alpha initialised by an occlusion-aware, edge-aware plane sweep with the AD-Census cost
-      (``stereo_cost="ad_census"``, softmin temperature 0.1; the margin beyond the
+      (``stereo_cost="ad_census"``, softmin temperature 0.1, run on a grid twice as fine as
+      alpha's finest level, ``stereo_supersample=2``; the margin beyond the
       photo from the border's), 48 planes, the paper's
       losses except L_ac (which blurred novel views in the ablation), the depth-consistency terms
       in an occlusion-tolerant form (cmc.losses.robust_depth_consistency), plus a concentration
@@ -157,6 +158,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
                 stereo_hidden_colour_everywhere=True,
                 stereo_cost="ad_census",
                 stereo_temperature=0.1,
+                stereo_supersample=2,
             )
         )
         cfg = TrainConfig(preset="fast", rays_per_view=4096, loss=loss, model=model)
