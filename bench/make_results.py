@@ -314,7 +314,8 @@ FERN_STEPS = [
     (
         "sgmt2",
         "... the same at softmin temperature 0.2, where the sweep alone is confident about as often as `fast` "
-        "now's (fern 33 % of texels against 24 %, precision 0.92 against 0.93; synthetic 73-90 % at 0.98-0.995) and still finds more of fern's "
+        "now's (fern 33 % of texels against 24 %, precision 0.92 against 0.93; synthetic 73-90 % at "
+        "0.98-0.995) and still finds more of fern's "
         "points within one plane, 0.837 (not adopted: +0.02 dB, SSIM -0.001, LPIPS-alex -0.002, LPIPS-vgg the "
         "same: noise, for a second aggregation; code: commit adc8b26 on top of e6ee3da)",
     ),

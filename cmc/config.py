@@ -85,7 +85,8 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
     * ``fast``: explicit multi-resolution plane textures (see cmc.fields.PyramidPlaneField),
       alpha initialised by an occlusion-aware, edge-aware plane sweep with the AD-Census cost
       (``stereo_cost="ad_census"``, softmin temperature 0.1, run on a grid twice as fine as
-      alpha's finest level, ``stereo_supersample=2``; the margin beyond the
+      alpha's finest level while that grid holds at most ``stereo_max_texels``,
+      ``stereo_supersample=2``; the margin beyond the
       photo from the border's), 48 planes, the paper's
       losses except L_ac (which blurred novel views in the ablation), the depth-consistency terms
       in an occlusion-tolerant form (cmc.losses.robust_depth_consistency), plus a concentration

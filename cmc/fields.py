@@ -108,6 +108,8 @@ class PyramidFieldConfig:
     stereo_edge_sigma: float = 0.1  # > 0: edge-aware cost aggregation (cmc.planesweep), colour scale
     stereo_extend_border: bool = True  # the margin starts with the image border's geometry (cmc.planesweep)
     stereo_supersample: int = 1  # the sweep runs on a grid this many times finer than alpha's finest level
+    # ... as long as that grid holds at most this many texels (cmc.planesweep.affordable_supersample)
+    stereo_max_texels: int = 2**19
     # > 0: behind a foreground outline, the farther surface within this fraction of the plane
     # width continues as a hidden layer, in alpha and base colour (cmc.planesweep.layered_alpha,
     # cmc.model.hidden_layer_colours); 0: off. Only where the sweep's most probable plane has a

@@ -11,7 +11,7 @@ from cmc.config import ModelConfig
 from cmc.datasets import Scene
 from cmc.fields import MLPField, MPIField, PyramidPlaneField, plane_group_bounds
 from cmc.geometry import texel_grid
-from cmc.planesweep import alpha_from_weights, layered_alpha, plane_sweep_weights
+from cmc.planesweep import affordable_supersample, alpha_from_weights, layered_alpha, plane_sweep_weights
 from cmc.rendering import ImageOutput, MPIFrame, render_image
 
 
@@ -104,7 +104,9 @@ class CMCModel(nn.Module):
                         edge_sigma=cfg.pyramid.stereo_edge_sigma or None,
                         extend_border=cfg.pyramid.stereo_extend_border,
                         cost=cfg.pyramid.stereo_cost,
-                        supersample=cfg.pyramid.stereo_supersample,
+                        supersample=affordable_supersample(
+                            h, w, cfg.pyramid.stereo_supersample, cfg.pyramid.stereo_max_texels
+                        ),
                     )
                     if cfg.pyramid.stereo_hidden_radius > 0:
                         radius = max(1, round(cfg.pyramid.stereo_hidden_radius * w))

@@ -6,9 +6,16 @@ import numpy as np
 import torch
 
 from cmc.datasets import Layer, render_layers, synthetic_cameras
+from cmc.fields import PyramidFieldConfig
 from cmc.geometry import plane_depths
 from cmc.model import hidden_layer_colours
-from cmc.planesweep import alpha_from_weights, census_distance, layered_alpha, plane_sweep_weights
+from cmc.planesweep import (
+    affordable_supersample,
+    alpha_from_weights,
+    census_distance,
+    layered_alpha,
+    plane_sweep_weights,
+)
 from cmc.rendering import MPIFrame, composite
 
 
@@ -251,3 +258,14 @@ def test_supersampled_sweep_is_a_distribution_on_the_coarse_grid():
     torch.testing.assert_close(w.sum(0), torch.ones(36, 48))
     true_plane = int(np.abs(plane_depths(near, far, D) - depth[1, 36, 48]).argmin())
     assert (w.argmax(0)[10:26, 15:33] - true_plane).abs().le(1).float().mean() > 0.9
+
+
+def test_supersample_falls_back_to_a_coarser_grid_for_large_photos():
+    """Fern at 504x378 (alpha's finest grid 227x302) sweeps on the 2x grid; at 1008x756 the 2x
+    grid would hold 1.1 M texels, over the default budget, so it sweeps on alpha's own grid (which
+    is then as fine as the 504 photo's 2x grid)."""
+    budget = PyramidFieldConfig().stereo_max_texels
+    assert affordable_supersample(227, 302, 2, budget) == 2
+    assert affordable_supersample(454, 605, 2, budget) == 1
+    assert affordable_supersample(100, 100, 3, 200 * 200) == 2
+    assert affordable_supersample(10, 10, 0, budget) == 1
