@@ -48,23 +48,25 @@ FERN_CMD = (
     "CMC_LPIPS_DIR=../shared/weights cmc bench llff --data ../shared/datasets/llff --scenes fern "
     "--out bench/{} --save-dir /tmp/runs"
 )
-# The `fast` preset now: the plane sweep on a grid twice as fine as alpha's finest level
-# (model.pyramid.stereo_supersample).
-FERN_AFTER = "view_quality_fern_ss2.json"
-SYN_AFTER = "view_quality_synthetic_ss2.json"
+# The `fast` preset now: semi-global aggregation of the sweep's cost at softmin temperature 0.2
+# (model.pyramid.stereo_smoothness), on the 2x sweep grid (model.pyramid.stereo_supersample).
+FERN_AFTER = "view_quality_fern_sgmt2.json"
+SYN_AFTER = "view_quality_synthetic_sgmt2.json"
 FERN_AFTER_FLAGS = ""
 SYN_AFTER_FLAGS = ""
 AFTER_NOTE = (
     "These runs had the CPU to themselves, on two threads; most earlier rows of the table below ran "
     "on one thread while other work used the CPU at times, so compare train seconds within a "
     "session only. Training is deterministic: reruns of a `fast` preset in later sessions scored exactly as "
-    "their reports (the rerun rows below). The synthetic after run (and the semi-global row of the fern "
-    "table) ran from a copy of the working tree of commit 56a7df5 with the new option not yet committed, so "
-    "the report could not read its commit: `56a7df5+dirty` was written into it by hand (the code is that of "
-    "7b3bbda, and adc8b26 for the semi-global row).\n"
+    "their reports (the rerun rows below). The after runs ran from a worktree of e6ee3da with the "
+    "semi-global aggregation of adc8b26 added, uncommitted then (the code the adoption commit holds). The synthetic "
+    "run of the 2x sweep grid and the first semi-global row of the fern table ran from a copy of the working "
+    "tree of commit 56a7df5 with the new options not yet committed, so those reports could not read their "
+    "commit: `56a7df5+dirty` was written into them by hand (the code is that of 7b3bbda, and adc8b26 for "
+    "the semi-global row).\n"
 )
-# The previous `fast`: the plane sweep with the AD-Census cost (model.pyramid.stereo_cost).
-SYN_PREV = "view_quality_synthetic_adcensus.json"
+# The previous `fast`: the plane sweep on a 2x grid (model.pyramid.stereo_supersample).
+SYN_PREV = "view_quality_synthetic_ss2.json"
 # The training of the 4096-rays row, baked with alpha under 1 % stored as 0 (cmc.baking.ALPHA_FLOOR);
 # the two reports of the bake-floor section of issue 10.
 FLOOR_FERN_AFTER = "view_quality_fern_floor.json"
@@ -97,15 +99,20 @@ ADC_NOHIDDEN_LABEL = (
     "the previous `fast` without the hidden layers (they still pay: synthetic halfway -0.54 dB, beyond -0.07 dB, "
     "near -0.07 dB; fern the same, +0.01 dB, LPIPS-vgg -0.002)"
 )
-NOW_LABEL = (
-    "**`fast` now**: the plane sweep runs on a grid twice as fine as alpha's finest level, its probabilities "
-    "averaged back over each texel (`model.pyramid.stereo_supersample=2`)"
+SS2_LABEL = (
+    "the previous `fast`: the plane sweep runs on a grid twice as fine as alpha's finest level, its "
+    "probabilities averaged back over each texel (`model.pyramid.stereo_supersample=2`)"
 )
 SGM_LABEL = (
-    "`fast` now + semi-global aggregation of the sweep's cost along four paths, P1 0.1, P2 1.0 (not adopted: "
-    "-0.09 dB, SSIM -0.006, LPIPS-vgg +0.005; on the sweep alone it finds fern's SfM points within one plane "
-    "more often, 0.838 against 0.821, but is confident on 66 % of fern's texels instead of 24 % at a precision "
-    "of 0.87 against 0.93; the synthetic set was not run; code: commit adc8b26)"
+    "the previous `fast` + semi-global aggregation of the sweep's cost along four paths, P1 0.1, P2 1.0, at "
+    "softmin temperature 0.1 (not adopted: -0.09 dB, SSIM -0.006, LPIPS-vgg +0.005; on the sweep alone it "
+    "finds fern's SfM points within one plane more often, 0.838 against 0.821, but is confident on 66 % of "
+    "fern's texels instead of 24 % at a precision of 0.87 against 0.93; the synthetic set was not run)"
+)
+NOW_LABEL = (
+    "**`fast` now**: the same at softmin temperature 0.2, where the sweep alone is confident about as often as "
+    "without the aggregation (fern 33 % of texels against 24 %, precision 0.92 against 0.93) and still finds "
+    "0.837 of fern's points (`model.pyramid.stereo_smoothness=[0.1,1.0]`, `stereo_temperature=0.2`)"
 )
 # What the bakes of fern_every_view.json are (run before the AD-Census sweep; not rerun since).
 EVERY_VIEW_BAKES = {
@@ -310,15 +317,8 @@ FERN_STEPS = [
     ("hcolour", HCOLOUR_LABEL),
     ("adcensus", ADCENSUS_LABEL),
     ("adcensus_nohidden", ADC_NOHIDDEN_LABEL),
+    ("ss2", SS2_LABEL),
     ("sgmss", SGM_LABEL),
-    (
-        "sgmt2",
-        "... the same at softmin temperature 0.2, where the sweep alone is confident about as often as `fast` "
-        "now's (fern 33 % of texels against 24 %, precision 0.92 against 0.93; synthetic 73-90 % at "
-        "0.98-0.995) and still finds more of fern's "
-        "points within one plane, 0.837 (not adopted: +0.02 dB, SSIM -0.001, LPIPS-alex -0.002, LPIPS-vgg the "
-        "same: noise, for a second aggregation; code: commit adc8b26 on top of e6ee3da)",
-    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
@@ -410,7 +410,8 @@ VQ_ABLATION = [
         "training)",
     ),
     ("view_quality_synthetic_adcensus_nohidden.json", ADC_NOHIDDEN_LABEL),
-    (SYN_PREV, ADCENSUS_LABEL),
+    ("view_quality_synthetic_adcensus.json", ADCENSUS_LABEL),
+    (SYN_PREV, SS2_LABEL),
     (SYN_AFTER, NOW_LABEL),
 ]
 
@@ -431,6 +432,7 @@ ABSENT_MEANS = {
     "model.pyramid.stereo_hidden_colour_everywhere": False,
     "model.pyramid.stereo_cost": "ad",
     "model.pyramid.stereo_supersample": 1,
+    "model.pyramid.stereo_smoothness": [0.0, 0.0],
 }
 
 
@@ -456,7 +458,6 @@ REMOVED_OPTIONS = {
     "model.pyramid.stereo_hidden_cross_check": False,
     "model.pyramid.stereo_hidden_nearest": False,
     "model.pyramid.alpha_guide_scale": 0.0,
-    "model.pyramid.stereo_smoothness": [0.0, 0.0],
 }
 
 
@@ -1030,6 +1031,11 @@ def main() -> None:
             + ", ".join(
                 f"`{lab}` ({c['cost']}, temperature {c['temperature']:g}"
                 + (f", on a {c['supersample']}x finer grid" if c.get("supersample", 1) > 1 else "")
+                + (
+                    f", semi-global aggregation P1 {c['smoothness'][0]:g}, P2 {c['smoothness'][1]:g}"
+                    if c.get("smoothness", [0, 0])[1] > 0
+                    else ""
+                )
                 + ")"
                 for lab, c in sweep["costs"].items()
             )

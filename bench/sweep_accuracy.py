@@ -38,9 +38,14 @@ from cmc.datasets import WIDE_SCENES, Scene, load_llff, wide_baseline_split
 from cmc.planesweep import plane_sweep_weights, texel_pixels
 from cmc.rendering import MPIFrame
 
-# (label, cost, softmin temperature, supersample): the starts of the `fast` presets in turn; the
-# last is that of `fast` now (the sweep on a grid twice as fine as alpha's finest level).
-COSTS = (("ad", "ad", 0.01, 1), ("ad_census", "ad_census", 0.1, 1), ("ad_census_2x", "ad_census", 0.1, 2))
+# (label, cost, softmin temperature, supersample, (P1, P2) of semi-global aggregation): the starts
+# of the `fast` presets in turn; the last is that of `fast` now.
+COSTS = (
+    ("ad", "ad", 0.01, 1, (0.0, 0.0)),
+    ("ad_census", "ad_census", 0.1, 1, (0.0, 0.0)),
+    ("ad_census_2x", "ad_census", 0.1, 2, (0.0, 0.0)),
+    ("ad_census_2x_sgm", "ad_census", 0.2, 2, (0.1, 1.0)),
+)
 
 
 def read_points3d(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -109,7 +114,7 @@ def score(scene: Scene, targets: list[tuple[np.ndarray, np.ndarray]]) -> dict[st
         disparity = 1 / fr.depths.numpy()  # decreasing with the plane index
         true_plane = np.interp(1 / z, disparity[::-1], np.arange(len(disparity))[::-1].astype(float))
         p = cfg.pyramid
-        for label, cost, temperature, supersample in COSTS:
+        for label, cost, temperature, supersample, smoothness in COSTS:
             probs = plane_sweep_weights(
                 frames,
                 images,
@@ -122,6 +127,7 @@ def score(scene: Scene, targets: list[tuple[np.ndarray, np.ndarray]]) -> dict[st
                 extend_border=p.stereo_extend_border,
                 cost=cost,
                 supersample=supersample,
+                smoothness=smoothness,
             )
             best, plane = probs.max(0)
             sure = (best > 0.5).numpy()
@@ -159,7 +165,10 @@ def main() -> None:
         "command": "python bench/sweep_accuracy.py",
         "date": datetime.date.today().isoformat(),
         "git_commit": git_commit(),
-        "costs": {label: {"cost": cost, "temperature": t, "supersample": ss} for label, cost, t, ss in COSTS},
+        "costs": {
+            label: {"cost": cost, "temperature": t, "supersample": ss, "smoothness": list(sm)}
+            for label, cost, t, ss, sm in COSTS
+        },
         "scenes": scenes,
     }
     args.out.write_text(json.dumps(report, indent=1) + "\n")

@@ -84,7 +84,8 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       the first 30 %, then lambda_ac = lambda_dc = 1.
     * ``fast``: explicit multi-resolution plane textures (see cmc.fields.PyramidPlaneField),
       alpha initialised by an occlusion-aware, edge-aware plane sweep with the AD-Census cost
-      (``stereo_cost="ad_census"``, softmin temperature 0.1, run on a grid twice as fine as
+      (``stereo_cost="ad_census"``) and semi-global aggregation (``stereo_smoothness=(0.1,
+      1.0)``), softmin temperature 0.2, run on a grid twice as fine as
       alpha's finest level while that grid holds at most ``stereo_max_texels``,
       ``stereo_supersample=2``; the margin beyond the
       photo from the border's), 48 planes, the paper's
@@ -158,7 +159,8 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
                 stereo_hidden_confidence=0.5,
                 stereo_hidden_colour_everywhere=True,
                 stereo_cost="ad_census",
-                stereo_temperature=0.1,
+                stereo_temperature=0.2,
+                stereo_smoothness=(0.1, 1.0),
                 stereo_supersample=2,
             )
         )

@@ -100,13 +100,17 @@ class PyramidFieldConfig:
     base_groups: int = 1  # base colours: one per group of adjacent planes (1 to num_planes)
     stereo_init: bool = True  # start alpha from plane-sweep photo-consistency (cmc.planesweep)
     # Softmin temperature of that prior (on the "ad" cost, mean abs colour difference; ``fast``
-    # uses 0.1 on "ad_census", whose cost is on another scale). At 0.05 the prior was nearly
-    # flat (training started from fog); at 0.01 it keeps the sweep's depth (bench/DIAGNOSIS.md).
+    # uses 0.2 on "ad_census" with semi-global aggregation, whose cost is on another scale). At
+    # 0.05 the prior was nearly flat (training started from fog); at 0.01 it keeps the sweep's
+    # depth (bench/DIAGNOSIS.md).
     stereo_temperature: float = 0.01
     stereo_occlusion_aware: bool = True  # that prior takes the best-matching other view, not the mean
     stereo_cost: str = "ad"  # "ad" or "ad_census": the photo-consistency measure (cmc.planesweep)
     stereo_edge_sigma: float = 0.1  # > 0: edge-aware cost aggregation (cmc.planesweep), colour scale
     stereo_extend_border: bool = True  # the margin starts with the image border's geometry (cmc.planesweep)
+    # (P1, P2) of semi-global aggregation of the sweep's cost (cmc.planesweep.semi_global), in
+    # cost units; P2 = 0: off.
+    stereo_smoothness: tuple[float, float] = (0.0, 0.0)
     stereo_supersample: int = 1  # the sweep runs on a grid this many times finer than alpha's finest level
     # ... as long as that grid holds at most this many texels (cmc.planesweep.affordable_supersample)
     stereo_max_texels: int = 2**19

