@@ -319,6 +319,15 @@ FERN_STEPS = [
     ("adcensus_nohidden", ADC_NOHIDDEN_LABEL),
     ("ss2", SS2_LABEL),
     ("sgmss", SGM_LABEL),
+    (
+        "sgm_nodc",
+        "`fast` now without L_dc^I and L_dc (they still pay: -0.09 dB, SSIM -0.008, LPIPS-vgg +0.009; views 0 and 8 "
+        "worse, view 16 the same; synthetic halfway -0.46 dB, near -0.51 dB)",
+    ),
+    (
+        "sgm_ac",
+        "`fast` now + L_ac (still does not pay: -0.05 dB, SSIM -0.017, LPIPS-vgg +0.045; blurrier at every test view)",
+    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
@@ -412,6 +421,11 @@ VQ_ABLATION = [
     ("view_quality_synthetic_adcensus_nohidden.json", ADC_NOHIDDEN_LABEL),
     ("view_quality_synthetic_adcensus.json", ADCENSUS_LABEL),
     (SYN_PREV, SS2_LABEL),
+    (
+        "view_quality_synthetic_sgm_nodc.json",
+        "`fast` now without L_dc^I and L_dc (they still pay: halfway -0.46 dB, near -0.51 dB, beyond -0.40 dB, every "
+        "scene worse; fern -0.09 dB)",
+    ),
     (SYN_AFTER, NOW_LABEL),
 ]
 
