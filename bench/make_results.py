@@ -114,10 +114,10 @@ NOW_LABEL = (
     "without the aggregation (fern 33 % of texels against 24 %, precision 0.92 against 0.93) and still finds "
     "0.837 of fern's points (`model.pyramid.stereo_smoothness=[0.1,1.0]`, `stereo_temperature=0.2`)"
 )
-# What the bakes of fern_every_view.json are (run before the AD-Census sweep; not rerun since).
+# What the bakes of fern_every_view.json are (the two fern runs of the latest adoption).
 EVERY_VIEW_BAKES = {
-    "previous": "the `fast` before the background's colour behind every surface",
-    "now": "the next `fast`, with the background's colour behind every surface (before the AD-Census sweep)",
+    "previous": "the previous `fast`, the 2x sweep grid without semi-global aggregation (`view_quality_fern_ss2`)",
+    "now": "`fast` now, with semi-global aggregation (`view_quality_fern_sgmt2`)",
 }
 BG4_LABEL = "the previous `fast`: + a base colour per group of 12 planes (`model.pyramid.base_groups=4`)"
 ENTROPY_LABEL = "the previous `fast`: + alpha entropy prior 0.01 (`cmc.losses.alpha_entropy`)"
