@@ -1074,7 +1074,7 @@ def main() -> None:
             "Command: `make demo`, i.e. `cmc demo --out demo-output` (its summary.json copied to "
             "bench/demo_cpu.json; the first view-quality preset's to bench/demo_cpu_before.json).  \n"
             "Machine: the same 2-core CPU box, no GPU, nothing else running. "
-            "Date: 2026-11-24, `fast` with the AD-Census plane sweep (before: 2026-11-23, "
+            "Date: 2026-11-24, `fast` with semi-global aggregation of the plane sweep's cost (before: 2026-11-23, "
             "the `fast` preset of the first view-quality session).\n",
             f"- training: {demo['steps']} steps in {demo['train_seconds']:.0f} s "
             f"(before: {demo_before['train_seconds']:.0f} s)",

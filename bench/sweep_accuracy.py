@@ -9,10 +9,10 @@ the sweep alone, before any training, against depth it never saw:
   an input view (COLMAP image ids follow the sorted image names, as ``poses_bounds.npy`` rows do),
   triangulated from all 20 photos. Points sit on textured spots, so fern's shares are optimistic.
 
-Per cost (and sweep grid): the share of targets whose best plane lies within 1 (and 2) plane spacings of the true
-depth, and, after the softmin at the cost's temperature, the share of texels inside the image
-where the sweep is confident (most probable plane above 0.5, the hidden layers' gate) and the
-share of confident targets within one plane (precision). Nothing trains and nothing is rendered
+Per cost (and sweep grid): the share of targets whose best plane lies within 1 (and 2) plane
+spacings of the true depth, and, after the softmin at the cost's temperature, the share of texels
+inside the image where the sweep is confident (most probable plane above 0.5, the hidden layers'
+gate) and the share of confident targets within one plane (precision). Nothing trains and nothing is rendered
 at a test view (fern's points were triangulated by COLMAP from all 20 photos, test views included).
 
 Usage (repository root)::

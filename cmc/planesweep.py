@@ -97,12 +97,12 @@ def plane_sweep_weights(
             height * supersample,
             width * supersample,
             temperature,
-            fine_window,
-            occlusion_aware,
-            edge_sigma,
-            extend_border,
-            cost,
-            smoothness,
+            window=fine_window,
+            occlusion_aware=occlusion_aware,
+            edge_sigma=edge_sigma,
+            extend_border=extend_border,
+            cost=cost,
+            smoothness=smoothness,
         )
         return F.avg_pool2d(fine[None], supersample)[0]
     fr = frames[ref]

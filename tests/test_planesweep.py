@@ -19,20 +19,30 @@ from cmc.planesweep import (
 )
 from cmc.rendering import MPIFrame, composite
 
+WALL_PLANES = 24
+
+
+def _textured_wall() -> tuple[list, torch.Tensor, int]:
+    """A textured wall at world z = 4 seen by 3 cameras (96x72) looking at (0, 0, 4): their
+    MPIFrames (WALL_PLANES planes between depths 2 and 8), the photos [3, 3, 72, 96] and the
+    index of the plane nearest the wall in the middle camera."""
+    cams = synthetic_cameras(3, width=96, height=72, baseline=0.6)
+    images, depth = render_layers((Layer(4.0, (-1e3, 1e3, -1e3, 1e3), 5),), cams)
+    near, far = 2.0, 8.0
+    D = WALL_PLANES
+    frames = [MPIFrame.create(cams.K[i], cams.world_from_cam[i], near, far, D, 96, 72, 1.0) for i in range(3)]
+    true_plane = int(np.abs(plane_depths(near, far, D) - depth[1, 36, 48]).argmin())
+    return frames, torch.as_tensor(images).permute(0, 3, 1, 2), true_plane
+
 
 def test_wall_is_found_on_its_plane():
     """A textured wall at world z = 4 seen by 3 cameras looking at (0, 0, 4): for the middle
     camera, texels inside its image put most weight on the plane nearest the wall's depth."""
-    cams = synthetic_cameras(3, width=96, height=72, baseline=0.6)
-    images, depth = render_layers((Layer(4.0, (-1e3, 1e3, -1e3, 1e3), 5),), cams)
-    near, far, D = 2.0, 8.0, 24
-    frames = [MPIFrame.create(cams.K[i], cams.world_from_cam[i], near, far, D, 96, 72, 1.0) for i in range(3)]
-    imgs = torch.as_tensor(images).permute(0, 3, 1, 2)
+    frames, imgs, true_plane = _textured_wall()
     w = plane_sweep_weights(frames, imgs, 1, 72, 96, temperature=0.02)
-    assert w.shape == (D, 72, 96)
+    assert w.shape == (WALL_PLANES, 72, 96)
     torch.testing.assert_close(w.sum(0), torch.ones(72, 96))
     best = w.argmax(0)[20:52, 30:66]  # central texels, seen by all views
-    true_plane = int(np.abs(plane_depths(near, far, D) - depth[1, 36, 48]).argmin())
     assert (best - true_plane).abs().le(1).float().mean() > 0.9
 
 
@@ -221,17 +231,13 @@ def _wall_under_exposure_change(cost: str, temperature: float) -> float:
     brighter (gain 1.4, darker corners: the exposure and vignetting differences of real
     cameras). Returns the share of central texels of the middle view whose best plane is within
     one plane of the wall."""
-    cams = synthetic_cameras(3, width=96, height=72, baseline=0.6)
-    images, depth = render_layers((Layer(4.0, (-1e3, 1e3, -1e3, 1e3), 5),), cams)
+    frames, imgs, true_plane = _textured_wall()
     v, u = np.mgrid[0:72, 0:96]
     vignette = 1 - 0.3 * (((u - 48) / 48) ** 2 + ((v - 36) / 36) ** 2) / 2
-    imgs = torch.as_tensor(images).permute(0, 3, 1, 2).clone()
+    imgs = imgs.clone()
     for j in (0, 2):
         imgs[j] = (imgs[j] * 1.4 * torch.as_tensor(vignette, dtype=imgs.dtype)).clamp(0, 1)
-    near, far, D = 2.0, 8.0, 24
-    frames = [MPIFrame.create(cams.K[i], cams.world_from_cam[i], near, far, D, 96, 72, 1.0) for i in range(3)]
     w = plane_sweep_weights(frames, imgs, 1, 72, 96, temperature=temperature, cost=cost)
-    true_plane = int(np.abs(plane_depths(near, far, D) - depth[1, 36, 48]).argmin())
     return float((w.argmax(0)[20:52, 30:66] - true_plane).abs().le(1).float().mean())
 
 
@@ -247,17 +253,12 @@ def test_ad_census_cost_finds_the_wall_under_an_exposure_change():
 def test_supersampled_sweep_is_a_distribution_on_the_coarse_grid():
     """With supersample=2 the sweep runs on a 2x finer grid (window 9 for 5) and returns the
     probabilities averaged over each texel of the requested grid: they sum to 1 and find the wall."""
-    cams = synthetic_cameras(3, width=96, height=72, baseline=0.6)
-    images, depth = render_layers((Layer(4.0, (-1e3, 1e3, -1e3, 1e3), 5),), cams)
-    near, far, D = 2.0, 8.0, 24
-    frames = [MPIFrame.create(cams.K[i], cams.world_from_cam[i], near, far, D, 96, 72, 1.0) for i in range(3)]
-    imgs = torch.as_tensor(images).permute(0, 3, 1, 2)
+    frames, imgs, true_plane = _textured_wall()
     w = plane_sweep_weights(frames, imgs, 1, 36, 48, temperature=0.1, cost="ad_census", supersample=2)
-    assert w.shape == (D, 36, 48)
+    assert w.shape == (WALL_PLANES, 36, 48)
     fine = plane_sweep_weights(frames, imgs, 1, 72, 96, temperature=0.1, window=9, cost="ad_census")
     torch.testing.assert_close(w, torch.nn.functional.avg_pool2d(fine[None], 2)[0])
     torch.testing.assert_close(w.sum(0), torch.ones(36, 48))
-    true_plane = int(np.abs(plane_depths(near, far, D) - depth[1, 36, 48]).argmin())
     assert (w.argmax(0)[10:26, 15:33] - true_plane).abs().le(1).float().mean() > 0.9
 
 
@@ -276,15 +277,11 @@ def _noisy_wall_share(smoothness: tuple[float, float]) -> float:
     """The wall of test_wall_is_found_on_its_plane at a fifth of its contrast, each photo with
     its own noise (sigma 0.03, a dim scene's sensor noise): per texel the cost barely separates
     the planes. Returns the share of central texels whose best plane is within one plane."""
-    cams = synthetic_cameras(3, width=96, height=72, baseline=0.6)
-    images, depth = render_layers((Layer(4.0, (-1e3, 1e3, -1e3, 1e3), 5),), cams)
+    frames, imgs, true_plane = _textured_wall()
     g = torch.Generator().manual_seed(0)
-    imgs = 0.5 + 0.2 * (torch.as_tensor(images).permute(0, 3, 1, 2) - 0.5)
+    imgs = 0.5 + 0.2 * (imgs - 0.5)
     imgs = (imgs + 0.03 * torch.randn(imgs.shape, generator=g)).clamp(0, 1)
-    near, far, D = 2.0, 8.0, 24
-    frames = [MPIFrame.create(cams.K[i], cams.world_from_cam[i], near, far, D, 96, 72, 1.0) for i in range(3)]
     w = plane_sweep_weights(frames, imgs, 1, 72, 96, temperature=0.1, cost="ad_census", smoothness=smoothness)
-    true_plane = int(np.abs(plane_depths(near, far, D) - depth[1, 36, 48]).argmin())
     return float((w.argmax(0)[20:52, 30:66] - true_plane).abs().le(1).float().mean())
 
 
