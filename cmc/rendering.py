@@ -164,18 +164,18 @@ def render_ray_groups(
         lams.append((frame.depths[None] - ref_from_tgt[2, 3]) / d_ref[:, 2:3])  # [R, D]
         dirss.append(d_ref / d_ref.norm(dim=-1, keepdim=True))
     rgb, alpha = field(torch.cat(gs), frame.plane_z, torch.cat(dirss))
-    outs, start = [], 0
-    for g, (inside, lam) in enumerate(zip(insides, lams, strict=True)):
-        sl = slice(start, start + len(lam))
-        start += len(lam)
+    # split, not slices: the backward of a slice fills a zero gradient of the whole batch per group
+    sizes = [len(lam) for lam in lams]
+    outs = []
+    for g, (rgb_g, alpha_g, inside, lam) in enumerate(
+        zip(rgb.split(sizes), alpha.split(sizes), insides, lams, strict=True)
+    ):
         scale = 1.0 if color_grad is None else float(color_grad[g])
-        if scale == 1.0:
-            rgb_g = rgb[sl]
-        elif scale == 0.0:  # no colour gradients: no backward pass through the colours at all
-            rgb_g = rgb[sl].detach()
-        else:
-            rgb_g = rgb[sl].detach() + scale * (rgb[sl] - rgb[sl].detach())
-        outs.append(composite(rgb_g, alpha[sl] * inside, torch.where(inside, lam, torch.zeros_like(lam))))
+        if scale == 0.0:  # no colour gradients: no backward pass through the colours at all
+            rgb_g = rgb_g.detach()
+        elif scale != 1.0:
+            rgb_g = rgb_g.detach() + scale * (rgb_g - rgb_g.detach())
+        outs.append(composite(rgb_g, alpha_g * inside, torch.where(inside, lam, torch.zeros_like(lam))))
     return outs
 
 

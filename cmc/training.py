@@ -110,9 +110,12 @@ class Trainer:
     # -- one step ---------------------------------------------------------------------------
 
     def _random_pixels(self, gen: torch.Generator, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """n random pixel indices and their centre coordinates [n, 2]."""
+        """n random pixel indices, in row-major order, and their centre coordinates [n, 2].
+
+        In order, neighbouring rays sample neighbouring texels: the textures' samples and their
+        gradients stay in the CPU's caches (a step on fern 1.3x faster, cmc.plane_sampling)."""
         w, h = self.scene.cameras.width, self.scene.cameras.height
-        idx = torch.randint(0, w * h, (n,), generator=gen).to(self.device)
+        idx = torch.randint(0, w * h, (n,), generator=gen).sort().values.to(self.device)
         uv = torch.stack([idx % w, idx // w], -1).float() + 0.5
         return idx, uv
 

@@ -1,0 +1,163 @@
+"""Compiled CPU bilinear sampling of plane textures, with its backward pass: what training spends
+most of its time on.
+
+:func:`sample_planes` computes ``sum_t grid_sample(textures[t], grid)`` as
+:func:`torch.nn.functional.grid_sample` does (bilinear, ``align_corners=False``, zero outside
+the texture), for the per-plane textures of :class:`cmc.fields.PyramidPlaneField`. On the CPU,
+torch's backward of ``grid_sample`` allocated and zeroed a gradient the size of every texture
+per call and scattered into it at about half the speed of the kernel here; a training step of
+fern spent about half its time there (bench/RESULTS.md, section "Training time").
+
+Plane k of the samples reads texture ``plane_texture[k]`` of each tensor (the identity for the
+per-plane levels, the plane's group for the shared base colours). Work is split over threads by
+whole textures, so no two threads write the same gradient texel: the result does not depend on
+the thread count. Sums differ from torch's in the last bits (another order of operations).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numba
+import numpy as np
+import torch
+
+# Parallel loops on OpenMP first: torch's CPU ops run on the same OpenMP threads in this process,
+# so the kernels get the threads that torch's ops leave spinning, instead of competing with them
+# (a pool of other threads ran the kernels 1.6x slower on two cores).
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+
+
+def _chunks(plane_texture: np.ndarray, parts: int) -> np.ndarray:
+    """Bounds of at most ``parts`` contiguous plane ranges, each holding whole textures (the
+    planes of one texture are contiguous): range i is [cuts[i], cuts[i + 1])."""
+    D = len(plane_texture)
+    starts = [0] + [k for k in range(1, D) if plane_texture[k] != plane_texture[k - 1]]
+    n = min(parts, len(starts))
+    return np.array([starts[i * len(starts) // n] for i in range(n)] + [D], np.int64)
+
+
+_JIT = dict(nogil=True, cache=True, boundscheck=False, error_model="numpy", fastmath={"contract"})
+
+
+@numba.njit(**_JIT)
+def _taps(gx, gy, H, W):
+    """Bilinear taps of grid point (gx, gy) on an H x W texture (``align_corners=False``):
+    top-left texel (x0, y0), the four weights, and which of the two columns / rows lie inside."""
+    ix = ((gx + np.float32(1)) * np.float32(W) - np.float32(1)) * np.float32(0.5)
+    iy = ((gy + np.float32(1)) * np.float32(H) - np.float32(1)) * np.float32(0.5)
+    fx, fy = np.floor(ix), np.floor(iy)
+    x0, y0 = np.int64(fx), np.int64(fy)
+    ax, ay = ix - fx, iy - fy
+    bx, by = np.float32(1) - ax, np.float32(1) - ay
+    return (
+        x0, y0, bx * by, ax * by, bx * ay, ax * ay,
+        0 <= x0 < W, 0 <= x0 + 1 < W, 0 <= y0 < H, 0 <= y0 + 1 < H,
+    )  # fmt: skip
+
+
+@numba.njit(**_JIT)
+def _forward(tex, grid, plane_texture, out, p0, p1):
+    """out[k, c, r] += bilinear sample of tex[plane_texture[k], c] at grid[k, r], for k in [p0, p1)."""
+    C, H, W = tex.shape[1], tex.shape[2], tex.shape[3]
+    for k in range(p0, p1):
+        t = plane_texture[k]
+        for r in range(grid.shape[1]):
+            x0, y0, w00, w01, w10, w11, vx0, vx1, vy0, vy1 = _taps(grid[k, r, 0], grid[k, r, 1], H, W)
+            for c in range(C):
+                s = np.float32(0)
+                if vy0:
+                    if vx0:
+                        s += w00 * tex[t, c, y0, x0]
+                    if vx1:
+                        s += w01 * tex[t, c, y0, x0 + 1]
+                if vy1:
+                    if vx0:
+                        s += w10 * tex[t, c, y0 + 1, x0]
+                    if vx1:
+                        s += w11 * tex[t, c, y0 + 1, x0 + 1]
+                out[k, c, r] += s
+
+
+@numba.njit(**_JIT)
+def _backward(grad_out, grid, plane_texture, grad_tex, p0, p1):
+    """grad_tex[t] = the transpose of :func:`_forward` applied to grad_out[k], summed over the
+    planes k of texture t, for the textures of planes [p0, p1), which no other range holds."""
+    C, H, W = grad_tex.shape[1], grad_tex.shape[2], grad_tex.shape[3]
+    grad_tex[plane_texture[p0] : plane_texture[p1 - 1] + 1] = 0  # zeroed here: fresh pages in parallel
+    for k in range(p0, p1):
+        t = plane_texture[k]
+        for r in range(grid.shape[1]):
+            x0, y0, w00, w01, w10, w11, vx0, vx1, vy0, vy1 = _taps(grid[k, r, 0], grid[k, r, 1], H, W)
+            for c in range(C):
+                g = grad_out[k, c, r]
+                if vy0:
+                    if vx0:
+                        grad_tex[t, c, y0, x0] += w00 * g
+                    if vx1:
+                        grad_tex[t, c, y0, x0 + 1] += w01 * g
+                if vy1:
+                    if vx0:
+                        grad_tex[t, c, y0 + 1, x0] += w10 * g
+                    if vx1:
+                        grad_tex[t, c, y0 + 1, x0 + 1] += w11 * g
+
+
+@numba.njit(parallel=True, **_JIT)
+def _forward_parallel(tex, grid, plane_texture, out, cuts):
+    for i in numba.prange(len(cuts) - 1):
+        _forward(tex, grid, plane_texture, out, cuts[i], cuts[i + 1])
+
+
+@numba.njit(parallel=True, **_JIT)
+def _backward_parallel(grad_out, grid, plane_texture, grad_tex, cuts):
+    for i in numba.prange(len(cuts) - 1):
+        _backward(grad_out, grid, plane_texture, grad_tex, cuts[i], cuts[i + 1])
+
+
+class _SamplePlanes(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, grid: torch.Tensor, plane_texture: np.ndarray, *textures: torch.Tensor) -> torch.Tensor:
+        D, R = grid.shape[:2]
+        out = torch.zeros(D, textures[0].shape[1], R)
+        numba.set_num_threads(min(numba.config.NUMBA_NUM_THREADS, torch.get_num_threads()))
+        chunks = _chunks(plane_texture, numba.get_num_threads())
+        g = grid.numpy()
+        for tex in textures:
+            _forward_parallel(tex.detach().numpy(), g, plane_texture, out.numpy(), chunks)
+        ctx.save_for_backward(grid)
+        ctx.plane_texture, ctx.chunks, ctx.shapes = plane_texture, chunks, [t.shape for t in textures]
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out: torch.Tensor):
+        (grid,) = ctx.saved_tensors
+        go, g = grad_out.contiguous().numpy(), grid.numpy()
+        grads = []
+        for shape, needed in zip(ctx.shapes, ctx.needs_input_grad[2:], strict=True):
+            gt = None
+            if needed:
+                gt = torch.empty(shape)
+                _backward_parallel(go, g, ctx.plane_texture, gt.numpy(), ctx.chunks)
+            grads.append(gt)
+        return (None, None, *grads)
+
+
+def supported(grid: torch.Tensor, textures: Sequence[torch.Tensor]) -> bool:
+    """Whether :func:`sample_planes` can take these: float32 on the CPU, no gradient to the grid."""
+    tensors = (grid, *textures)
+    return not grid.requires_grad and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
+
+
+def sample_planes(grid: torch.Tensor, plane_texture: Sequence[int], textures: Sequence[torch.Tensor]) -> torch.Tensor:
+    """Sum over ``textures`` of their bilinear samples: ``out[k, :, r]`` = sum_t of texture
+    ``plane_texture[k]`` of ``textures[t]`` at grid point ``grid[k, r]`` (``grid_sample``
+    coordinates, ``align_corners=False``, zero outside).
+
+    Shape: grid [D, R, 2]; textures [T_i, C, H_i, W_i] (same C, any sizes), the planes of one
+    texture contiguous -> [D, C, R]. Differentiable in the textures, not in the grid; only where
+    :func:`supported` (the GPU keeps ``grid_sample``).
+    """
+    if not supported(grid, textures):
+        raise ValueError("sample_planes takes float32 CPU tensors and a grid without gradient")
+    return _SamplePlanes.apply(grid.contiguous(), np.asarray(plane_texture, np.int64), *textures)

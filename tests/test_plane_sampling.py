@@ -1,0 +1,88 @@
+"""The compiled CPU sampler of plane textures against torch's grid_sample, values and gradients."""
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from cmc import plane_sampling
+from cmc.fields import PyramidFieldConfig, PyramidPlaneField
+
+
+def _grid_sample_sum(grid, plane_texture, textures):
+    """The definition, with torch: sum over textures of grid_sample of each plane's texture."""
+    index = torch.as_tensor(plane_texture)
+    return sum(F.grid_sample(t[index], grid[:, None], align_corners=False)[:, :, 0] for t in textures)
+
+
+@pytest.mark.parametrize("plane_texture", [[0, 1, 2, 3, 4], [0, 0, 0, 1, 1]])
+def test_sample_planes_matches_grid_sample_and_its_gradient(plane_texture):
+    gen = torch.Generator().manual_seed(0)
+    textures = [torch.randn(max(plane_texture) + 1, 4, h, w, generator=gen) for h, w in ((9, 13), (4, 6))]
+    # Points beyond the texture (|g| > 1) sample zero padding, as grid_sample's do.
+    grid = torch.rand(len(plane_texture), 300, 2, generator=gen) * 3 - 1.5
+    weights = torch.randn(len(plane_texture), 4, 300, generator=gen)
+    outs, grads = [], []
+    for fn in (plane_sampling.sample_planes, _grid_sample_sum):
+        leaves = [t.clone().requires_grad_() for t in textures]
+        out = fn(grid, plane_texture, leaves)
+        (out * weights).sum().backward()
+        outs.append(out.detach())
+        grads.append([t.grad for t in leaves])
+    torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=1e-5)
+    for mine, theirs in zip(*grads, strict=True):
+        torch.testing.assert_close(mine, theirs, rtol=0, atol=1e-4)
+    assert outs[0].abs().sum() > 0 and grads[0][0].abs().sum() > 0
+
+
+def test_sample_planes_does_not_depend_on_the_thread_count():
+    gen = torch.Generator().manual_seed(1)
+    tex = torch.randn(6, 3, 20, 30, generator=gen)
+    grid = torch.rand(6, 500, 2, generator=gen) * 2 - 1
+    results = []
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            leaf = tex.clone().requires_grad_()
+            out = plane_sampling.sample_planes(grid, [0, 0, 1, 1, 2, 2], [leaf])
+            out.square().sum().backward()
+            results.append((out.detach(), leaf.grad))
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(results[0][0], results[1][0]) and torch.equal(results[0][1], results[1][1])
+
+
+def test_sample_planes_refuses_what_it_cannot_differentiate():
+    tex = torch.zeros(1, 4, 2, 2)
+    with pytest.raises(ValueError):
+        plane_sampling.sample_planes(torch.zeros(1, 3, 2, requires_grad=True), [0], [tex])
+    with pytest.raises(ValueError):
+        plane_sampling.sample_planes(torch.zeros(1, 3, 2, dtype=torch.float64), [0], [tex.double()])
+
+
+@pytest.mark.parametrize(("num_planes", "groups"), [(12, 4), (10, 4)])
+def test_pyramid_field_is_the_same_with_either_sampler(monkeypatch, num_planes, groups):
+    """The field on the CPU (compiled sampler) and on torch's grid_sample (the GPU's path): same
+    colours and alpha, same gradients; 10 planes in 4 groups makes groups of unequal size."""
+    gen = torch.Generator().manual_seed(2)
+    cfg = PyramidFieldConfig(base_groups=groups)
+    field = PyramidPlaneField(num_planes, 30, 40, cfg, torch.rand(3, 30, 40, generator=gen))
+    with torch.no_grad():
+        for p in field.parameters():
+            p.add_(0.3 * torch.randn(p.shape, generator=gen))
+    g = torch.rand(200, num_planes, 2, generator=gen) * 3 - 1.5
+    results = []
+    for compiled in (True, False):
+        if not compiled:
+            monkeypatch.setattr(plane_sampling, "supported", lambda *a: False)
+        field.zero_grad()
+        rgb, alpha = field(g, None, None)
+        (rgb.square().sum() + alpha.sum()).backward()
+        results.append((rgb.detach(), alpha.detach(), [p.grad.clone() for p in field.parameters()]))
+    (rgb1, a1, g1), (rgb2, a2, g2) = results
+    torch.testing.assert_close(rgb1, rgb2, rtol=0, atol=1e-6)
+    torch.testing.assert_close(a1, a2, rtol=0, atol=1e-6)
+    for x, y in zip(g1, g2, strict=True):
+        torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-5)
+    assert all(np.isfinite(x.numpy()).all() and x.abs().sum() > 0 for x in g1)
