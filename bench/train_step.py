@@ -1,0 +1,109 @@
+"""Time of one training step on fern, this tree against an earlier commit.
+
+The job: fern's three training views (``images_8``, RegNeRF split), ``fast`` preset. Each tree is
+timed in its own process, the two alternating, ``--rounds`` times; a process times ``--steps``
+steps of each loss phase (reconstruction only, from step 0; the full loss, from step 150) after
+two warm-up steps, and reports their medians. The plane-sweep start is off
+(``model.pyramid.stereo_init=false``): it only sets the initial alpha, and a step samples every
+plane of every ray whatever alpha holds, so the step's cost does not depend on it, and each
+process is spared the sweep's 45 s.
+
+Usage (from the repository root; writes the report and prints it)::
+
+    python bench/train_step.py --data ../shared/datasets/llff/fern --before 72b0bd5 \
+        --out bench/train_step_cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+from datetime import UTC, datetime
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+MEASURE = r"""
+import json, statistics, sys, time, torch
+from cmc.config import preset_config, with_settings
+from cmc.datasets import load_llff
+from cmc.training import Trainer
+data, steps = sys.argv[1], int(sys.argv[2])
+torch.manual_seed(0)
+cfg = with_settings(preset_config("fast"), ["model.pyramid.stereo_init=false"])
+trainer = Trainer(load_llff(data).train, cfg)
+out = {}
+for phase, start in (("reconstruction_only", 0), ("full", 150)):
+    trainer.step = start
+    times = []
+    for i in range(steps + 2):
+        t = time.perf_counter()
+        trainer.train_step()
+        if i >= 2:
+            times.append(time.perf_counter() - t)
+    out[phase] = statistics.median(times)
+print(json.dumps(out))
+"""
+
+
+def git(*args: str, cwd: Path = ROOT) -> str:
+    return subprocess.run(["git", *args], cwd=cwd, check=True, capture_output=True, text=True).stdout.strip()
+
+
+def time_tree(tree: Path, data: str, steps: int) -> dict[str, float]:
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    done = subprocess.run(
+        [sys.executable, "-c", MEASURE, data, str(steps)], cwd=tree, env=env, check=True, capture_output=True, text=True
+    )
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", required=True, help="the fern scene folder")
+    ap.add_argument("--before", required=True, help="the commit to compare with")
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--steps", type=int, default=12, help="timed steps per phase and process")
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args()
+    rounds: dict[str, list[dict[str, float]]] = {"before": [], "after": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        before_tree = Path(tmp) / "before"
+        git("worktree", "add", "--detach", str(before_tree), args.before)
+        try:
+            for r in range(args.rounds):
+                for name, tree in (("before", before_tree), ("after", ROOT)):
+                    rounds[name].append(time_tree(tree, args.data, args.steps))
+                    print(f"round {r + 1}: {name} {rounds[name][-1]}", flush=True)
+        finally:
+            git("worktree", "remove", "--force", str(before_tree))
+    summary = {
+        name: {phase: statistics.median(r[phase] for r in runs) for phase in runs[0]} for name, runs in rounds.items()
+    }
+    report = {
+        "command": "python bench/train_step.py " + " ".join(sys.argv[1:]),
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "git_commit": git("rev-parse", "--short", "HEAD") + ("+dirty" if git("status", "--porcelain") else ""),
+        "before_commit": git("rev-parse", "--short", args.before),
+        "machine": {
+            "cpu": platform.processor() or platform.machine(),
+            "cores": os.cpu_count(),
+            "python": platform.python_version(),
+            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+        },
+        "steps_per_process": args.steps,
+        "rounds": rounds,
+        "median_step_s": summary,
+    }
+    Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+    print(json.dumps(summary, indent=1))
+
+
+if __name__ == "__main__":
+    main()
