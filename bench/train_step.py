@@ -59,8 +59,10 @@ def git(*args: str, cwd: Path = ROOT) -> str:
 def time_tree(tree: Path, data: str, steps: int) -> dict[str, float]:
     env = {**os.environ, "PYTHONPATH": str(tree)}
     done = subprocess.run(
-        [sys.executable, "-c", MEASURE, data, str(steps)], cwd=tree, env=env, check=True, capture_output=True, text=True
+        [sys.executable, "-c", MEASURE, data, str(steps)], cwd=tree, env=env, capture_output=True, text=True
     )
+    if done.returncode:
+        raise SystemExit(f"timing {tree} failed:\n{done.stderr}")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
@@ -79,7 +81,7 @@ def main() -> None:
         try:
             for r in range(args.rounds):
                 for name, tree in (("before", before_tree), ("after", ROOT)):
-                    rounds[name].append(time_tree(tree, args.data, args.steps))
+                    rounds[name].append(time_tree(tree, str(Path(args.data).resolve()), args.steps))
                     print(f"round {r + 1}: {name} {rounds[name][-1]}", flush=True)
         finally:
             git("worktree", "remove", "--force", str(before_tree))
