@@ -328,6 +328,12 @@ FERN_STEPS = [
         "sgm_ac",
         "`fast` now + L_ac (still does not pay: -0.05 dB, SSIM -0.017, LPIPS-vgg +0.045; blurrier at every test view)",
     ),
+    ("rerun_sampler", "`fast` now, rerun in a later session (the same scores)"),
+    (
+        "sampler",
+        "the same with the compiled texture sampler and each view's rays in row-major order (the same scores to "
+        "the fourth decimal; section \"Training time\" below)",
+    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
