@@ -12,10 +12,15 @@ Plane k of the samples reads texture ``plane_texture[k]`` of each tensor (the id
 per-plane levels, the plane's group for the shared base colours). Work is split over threads by
 whole textures, so no two threads write the same gradient texel: the result does not depend on
 the thread count. Sums differ from torch's in the last bits (another order of operations).
+
+Threads come from numba's OpenMP layer, which is not fork-safe: a process that has trained must
+not fork a child that trains (numba terminates such a child). Celery's prefork parent never
+trains, and nothing here forks.
 """
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
 
 import numba
@@ -26,6 +31,9 @@ import torch
 # so the kernels get the threads that torch's ops leave spinning, instead of competing with them
 # (a pool of other threads ran the kernels 1.6x slower on two cores).
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+# One launch at a time: numba's fallback layer (workqueue) aborts on launches from two threads at
+# once, and two trainings in threads of one process share the cores anyway.
+_LAUNCH = threading.Lock()
 
 
 def _chunks(plane_texture: np.ndarray, parts: int) -> np.ndarray:
@@ -123,8 +131,9 @@ class _SamplePlanes(torch.autograd.Function):
         numba.set_num_threads(min(numba.config.NUMBA_NUM_THREADS, torch.get_num_threads()))
         chunks = _chunks(plane_texture, numba.get_num_threads())
         g = grid.numpy()
-        for tex in textures:
-            _forward_parallel(tex.detach().numpy(), g, plane_texture, out.numpy(), chunks)
+        with _LAUNCH:
+            for tex in textures:
+                _forward_parallel(tex.detach().numpy(), g, plane_texture, out.numpy(), chunks)
         ctx.save_for_backward(grid)
         ctx.plane_texture, ctx.chunks, ctx.shapes = plane_texture, chunks, [t.shape for t in textures]
         return out
@@ -138,7 +147,9 @@ class _SamplePlanes(torch.autograd.Function):
             gt = None
             if needed:
                 gt = torch.empty(shape)
-                _backward_parallel(go, g, ctx.plane_texture, gt.numpy(), ctx.chunks)
+                with _LAUNCH:  # zeroes and fills the textures planes read
+                    _backward_parallel(go, g, ctx.plane_texture, gt.numpy(), ctx.chunks)
+                gt[np.setdiff1d(np.arange(shape[0]), ctx.plane_texture)] = 0  # and those none reads
             grads.append(gt)
         return (None, None, *grads)
 
@@ -161,3 +172,11 @@ def sample_planes(grid: torch.Tensor, plane_texture: Sequence[int], textures: Se
     if not supported(grid, textures):
         raise ValueError("sample_planes takes float32 CPU tensors and a grid without gradient")
     return _SamplePlanes.apply(grid.contiguous(), np.asarray(plane_texture, np.int64), *textures)
+
+
+def warm_up() -> None:
+    """Compile the kernels now (numba caches them on disk beside this module when that is
+    writable), so the first training step of a fresh process does not pay the compile; the
+    Dockerfiles call it."""
+    tex = torch.zeros(2, 4, 3, 3, requires_grad=True)
+    sample_planes(torch.zeros(2, 5, 2), [0, 1], [tex]).sum().backward()

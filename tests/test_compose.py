@@ -579,6 +579,16 @@ def test_dockerfiles_share_uid_and_python() -> None:
 
 
 @pytest.mark.parametrize("kind", sorted(DOCKERFILES))
+def test_kernel_warm_up_command_runs(kind: str) -> None:
+    """The image compiles the numba kernels at build time: its command must name real modules and
+    compile both (the renderer's and the training sampler's)."""
+    run = next(rest for word, rest in dockerfile_instructions(DOCKERFILES[kind]) if word == "RUN" and "warm_up" in rest)
+    code = re.search(r'python -c "([^"]+)"', run)[1]
+    assert "cmc.texture_kernel" in code and "cmc.plane_sampling" in code
+    subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True, timeout=300)
+
+
+@pytest.mark.parametrize("kind", sorted(DOCKERFILES))
 def test_dependency_layer_installs_pyproject(kind: str) -> None:
     """Run the Dockerfile's own requirements-extraction command on this pyproject.toml."""
     path = DOCKERFILES[kind]

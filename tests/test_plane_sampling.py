@@ -36,6 +36,7 @@ def test_sample_planes_matches_grid_sample_and_its_gradient(plane_texture):
 
 
 def test_sample_planes_does_not_depend_on_the_thread_count():
+    """Also: textures that no plane reads (3 to 5 here) get a zero gradient."""
     gen = torch.Generator().manual_seed(1)
     tex = torch.randn(6, 3, 20, 30, generator=gen)
     grid = torch.rand(6, 500, 2, generator=gen) * 2 - 1
@@ -51,6 +52,8 @@ def test_sample_planes_does_not_depend_on_the_thread_count():
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(results[0][0], results[1][0]) and torch.equal(results[0][1], results[1][1])
+    grad = results[1][1]
+    assert (grad[3:] == 0).all() and (grad[:3] != 0).any(dim=(1, 2, 3)).all()
 
 
 def test_sample_planes_refuses_what_it_cannot_differentiate():
