@@ -93,52 +93,24 @@ def _atlas_grid(num_planes: int) -> tuple[int, int]:
     return math.ceil(num_planes / cols), cols
 
 
-def reference_weights(rgba: torch.Tensor) -> torch.Tensor:
-    """How much of the reference view each plane makes: the mean over texels of its compositing
-    weight ``a_k prod_{j<k} (1 - a_j)`` along the reference camera's rays (the back plane
-    counted opaque, as the renderer does). Shape: rgba [D, 4, h, w] straight alpha -> [D],
-    summing to 1."""
-    alpha = rgba[:, 3].clone()
-    alpha[-1] = 1.0
-    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:1]), 1 - alpha[:-1]]), 0)
-    return (alpha * trans).flatten(1).mean(1)
+def merge_planes(rgba: torch.Tensor, depths: torch.Tensor, group: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Composite each run of ``group`` adjacent planes into one (fewer planes, faster renders).
 
-
-def budget_groups(weights: torch.Tensor, max_planes: int) -> list[int]:
-    """Runs of adjacent planes to merge so that at most ``max_planes`` remain: starting from one
-    plane per run, the two adjacent runs with the least weight together are merged, again and
-    again (planes that make little of the image, e.g. the empty ones before the nearest surface,
-    go first). Returns the first plane of each run, then D (as :func:`cmc.fields.plane_group_bounds`)."""
-    runs = [[k, float(w)] for k, w in enumerate(weights)]  # [first plane, weight]
-    while len(runs) > max(1, max_planes):
-        i = min(range(len(runs) - 1), key=lambda j: runs[j][1] + runs[j + 1][1])
-        runs[i][1] += runs.pop(i + 1)[1]
-    return [r[0] for r in runs] + [len(weights)]
-
-
-def merge_planes(
-    rgba: torch.Tensor, depths: torch.Tensor, bounds: list[int], weights: torch.Tensor | None = None
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Composite each run of adjacent planes [bounds[i], bounds[i + 1]) into one.
-
-    Exact at the reference view; elsewhere the merged content moves with one depth: the mean
-    disparity of its run, weighted by ``weights`` (:func:`reference_weights`, so the plane sits
-    where the run's content is) or plain. Shape: rgba [D, 4, h, w] straight alpha, depths [D] ->
-    ([len(bounds) - 1, 4, h, w], [len(bounds) - 1]).
+    Exact at the reference view; elsewhere the merged content moves with one depth, the
+    disparity mean of its group. Shape: rgba [D, 4, h, w] straight alpha, depths [D] ->
+    ([ceil(D / group), 4, h, w], [ceil(D / group)]).
     """
-    if len(bounds) == len(depths) + 1:
+    if group <= 1:
         return rgba, depths
     planes, new_depths = [], []
-    for s, e in zip(bounds[:-1], bounds[1:], strict=True):
+    for s in range(0, len(depths), group):
         color, alpha = torch.zeros_like(rgba[0, :3]), torch.zeros_like(rgba[0, 3:])
-        for k in range(s, e):  # front to back, premultiplied "over"
+        for k in range(s, min(s + group, len(depths))):  # front to back, premultiplied "over"
             a = rgba[k, 3:]
             color = color + (1 - alpha) * a * rgba[k, :3]
             alpha = alpha + (1 - alpha) * a
         planes.append(torch.cat([color / alpha.clamp_min(1e-6), alpha], 0))
-        w = torch.ones(e - s) if weights is None else weights[s:e].double().cpu() + 1e-9
-        disparity = (w * (1.0 / depths[s:e].double().cpu())).sum() / w.sum()
-        new_depths.append((1.0 / disparity).to(depths))
+        new_depths.append(1.0 / (1.0 / depths[s : s + group]).mean())
     return torch.stack(planes), torch.stack(new_depths)
 
 
@@ -152,33 +124,20 @@ def quantize_planes(rgba: torch.Tensor, alpha_floor: int = ALPHA_FLOOR) -> np.nd
 
 
 def bake(
-    model: CMCModel,
-    out_dir: str | Path,
-    scale: float = 1.0,
-    merge: int = 1,
-    alpha_floor: int = ALPHA_FLOOR,
-    max_planes: int | None = None,
+    model: CMCModel, out_dir: str | Path, scale: float = 1.0, merge: int = 1, alpha_floor: int = ALPHA_FLOOR
 ) -> Path:
     """Write ``model`` in the ``cmc-mpi`` format.
 
     ``scale`` multiplies the texel resolution; ``merge`` > 1 composites that many adjacent
-    planes into one (:func:`merge_planes`) for faster rendering; ``max_planes`` caps the planes
-    per MPI, merging the adjacent planes that make the least of the reference view first
-    (:func:`budget_groups`; None: no cap); alpha at or below ``alpha_floor`` (8-bit counts) is
-    stored as 0 (:func:`quantize_planes`; 0 keeps every alpha).
+    planes into one (:func:`merge_planes`) for faster rendering; alpha at or below
+    ``alpha_floor`` (8-bit counts) is stored as 0 (:func:`quantize_planes`; 0 keeps every alpha).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     mpis = []
     for i, (mpi_field, frame) in enumerate(zip(model.fields, model.frames, strict=True)):
         h, w = (max(2, round(s * scale)) for s in frame.extent)
-        rgba = bake_textures(mpi_field, frame, (h, w))  # type: ignore[arg-type]
-        D = rgba.shape[0]
-        if max_planes is not None and max_planes < -(-D // merge):
-            weights = reference_weights(rgba)
-            rgba, depths = merge_planes(rgba, frame.depths, budget_groups(weights, max_planes), weights)
-        else:
-            rgba, depths = merge_planes(rgba, frame.depths, list(range(0, D, merge)) + [D])
+        rgba, depths = merge_planes(bake_textures(mpi_field, frame, (h, w)), frame.depths, merge)  # type: ignore[arg-type]
         D = rgba.shape[0]
         rows, cols = _atlas_grid(D)
         atlas = np.zeros((rows * h, cols * w, 4), dtype=np.uint8)

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from cmc._reference import render_texture_image_reference
-from cmc.baking import BakedFormatError, BakedScene, bake, budget_groups, quantize_planes
+from cmc.baking import BakedFormatError, BakedScene, bake, quantize_planes
 from cmc.config import preset_config
 from cmc.datasets import synthetic_scene
 from cmc.geometry import blend_weights, mean_baseline, sample_virtual_pose
@@ -108,36 +108,6 @@ def test_merged_planes_are_exact_at_the_reference_view(trained, tmp_path):
     a = full.render(K, pose, min_weight=0.99)  # the reference MPI alone
     b = merged.render(K, pose, min_weight=0.99)
     assert psnr(a.rgb.numpy(), b.rgb.numpy()) >= 40
-
-
-def test_budget_merges_the_planes_that_make_least_of_the_view_first():
-    # three nearly empty planes before two surfaces and an opaque back: the empty ones go together
-    weights = torch.tensor([0.01, 0.01, 0.01, 0.5, 0.3, 0.17])
-    assert budget_groups(weights, 4) == [0, 3, 4, 5, 6]
-    assert budget_groups(weights, 6) == [0, 1, 2, 3, 4, 5, 6]
-    assert budget_groups(weights, 1) == [0, 6]
-
-
-def test_plane_budget_keeps_the_content_where_it_is(trained, tmp_path):
-    """Capped at 5 of 10 planes, the bake merges the planes that carry little of the reference
-    view and puts each merged plane at its content's disparity: away from the inputs it renders
-    much closer to the full bake than merging fixed pairs (also 5 planes) does, and it stays
-    exact at the reference view."""
-    scene, model = trained
-    full = BakedScene.load(bake(model, tmp_path / "full"))
-    pairs = BakedScene.load(bake(model, tmp_path / "pairs", merge=2))
-    budget = BakedScene.load(bake(model, tmp_path / "budget", max_planes=5))
-    assert len(budget.frames[0].depths) == len(pairs.frames[0].depths) == 5
-    K, pose = scene.cameras.K[0], scene.cameras.world_from_cam[0]
-    ref = full.render(K, pose, min_weight=0.99)
-    assert psnr(ref.rgb.numpy(), budget.render(K, pose, min_weight=0.99).rgb.numpy()) >= 40
-    rng = np.random.default_rng(1)
-    gains = []
-    for _ in range(3):
-        P = sample_virtual_pose(scene.cameras.world_from_cam, rng, jitter=0.5)
-        a = full.render(K, P).rgb.numpy()
-        gains.append(psnr(a, budget.render(K, P).rgb.numpy()) - psnr(a, pairs.render(K, P).rgb.numpy()))
-    assert min(gains) > 3, gains
 
 
 def test_faint_alpha_is_stored_as_zero():
