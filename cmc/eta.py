@@ -13,8 +13,8 @@ Stages that have not run yet are estimated from a reference run until they measu
 speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2-core CPU.
 
 * :data:`REFERENCE_POSES_S`: structure from motion, 12.7 s (median of 3, bench/poses_fern.md).
-* :data:`REFERENCE_STEP_S`: a training step, plane sweep included, 0.96 s (400 steps of 4096
-  rays per view in 384 s, bench/view_quality_fern_rays.json). A GPU trains much faster: until
+* :data:`REFERENCE_STEP_S`: a training step, plane sweep included, 0.60 s (400 steps of 4096
+  rays per view in 240 s, bench/view_quality_fern_sampler.json). A GPU trains much faster: until
   training has run a step, a job's estimate is pessimistic there.
 * Baking, in training steps (:func:`bake_steps`): modelled, not measured; the bake evaluates
   every texel of every plane once, a step its rays' samples forward and backward.
@@ -29,7 +29,7 @@ if TYPE_CHECKING:
     from cmc.config import TrainConfig
 
 REFERENCE_POSES_S = 12.7
-REFERENCE_STEP_S = 0.96
+REFERENCE_STEP_S = 0.60
 # TrainConfig.steps of each preset and the fast preset's rays_per_view (cmc.config.preset_config
 # needs torch to import; the pose-estimation worker does not load it). tests/test_eta.py checks
 # that they agree.
