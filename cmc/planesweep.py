@@ -143,8 +143,8 @@ def plane_sweep_weights(
     # half the census bits.
     flat = 0.5 if cost == "ad" else 2 - math.exp(-0.5 / AD_SCALE) - math.exp(-0.5 / CENSUS_SCALE)
     c = torch.where(seen_t.any(0), c, torch.full_like(c, flat))
-    if smoothness[1] > 0:  # P1 per 1/47 of the disparity range (one step of 48 planes)
-        c = semi_global(c, smoothness[0] * 47 / max(c.shape[0] - 1, 1), smoothness[1])
+    if smoothness[1] > 0:
+        c = semi_global(c, *smoothness)
     probs = torch.softmax(-c / temperature, dim=0)
     if extend_border:
         uv = uv_ref.reshape(height, width, 2)
@@ -256,22 +256,13 @@ def layered_alpha(
     [h, w] of the texels given a hidden layer).
     """
     alpha = alpha_from_weights(weights)
-    _, front = weights.max(0)
-    # confidence: the probability within one step of 48 planes around the most probable plane
-    D = weights.shape[0]
-    half = ((D - 1) / 47 - 1) / 2
-    reach = math.ceil(half)
-    padded = F.pad(weights, (0, 0, 0, 0, reach, reach))
-    near = sum(
-        max(0.0, min(1.0, half - abs(o) + 1)) * padded[reach + o : reach + o + D] for o in range(-reach, reach + 1)
-    )
-    best = near.gather(0, front[None])[0]
+    best, front = weights.max(0)
     sure = best > confidence
     smooth = F.pad(front[None, None].float(), (1, 1, 1, 1), mode="replicate")
     smooth = F.unfold(smooth, 3).median(1).values.reshape(front.shape)
     smooth = torch.where(sure, smooth, torch.full_like(smooth, -1.0))
     back = F.max_pool2d(smooth[None, None], 2 * radius + 1, stride=1, padding=radius)[0, 0].long()
-    edge = sure & (back > front + max(1, round((D - 1) / 47)))
+    edge = sure & (back > front + 1)
     k = torch.arange(weights.shape[0], device=weights.device)[:, None, None]
     hidden = (k > front) & edge  # planes behind the surface of an edge texel
     alpha = torch.where(hidden, torch.where(k == back, 0.99, 0.01), alpha)
