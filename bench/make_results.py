@@ -445,6 +445,12 @@ VQ_ABLATION = [
         "scene worse; fern -0.09 dB)",
     ),
     ("view_quality_synthetic_sampler_planes80.json", PLANES80_LABEL),
+    (
+        "view_quality_synthetic_p80inv.json",
+        "... with the sweep's knobs per disparity, not per plane: SGM's P1 scaled by 47 / (D - 1), the hidden "
+        "layers' confidence gate over one step of 48 planes (not adopted: halfway -0.03 dB, near -0.03 dB, beyond "
+        "-0.29 dB against 80 planes with the knobs per plane; run from an uncommitted tree, code: commit 08cef8c)",
+    ),
     (SYN_AFTER, NOW_LABEL),
 ]
 
