@@ -451,6 +451,11 @@ VQ_ABLATION = [
         "layers' confidence gate over one step of 48 planes (not adopted: halfway -0.03 dB, near -0.03 dB, beyond "
         "-0.29 dB against 80 planes with the knobs per plane; run from an uncommitted tree, code: commit 08cef8c)",
     ),
+    (
+        "view_quality_synthetic_p80bg7.json",
+        "`fast` now with 80 planes and a base colour per group of 11-12 planes (7 groups), as at 48 planes (not "
+        "adopted: halfway -0.02 dB, near -0.06 dB, beyond +0.09 dB against 80 planes in 4 groups)",
+    ),
     (SYN_AFTER, NOW_LABEL),
 ]
 
