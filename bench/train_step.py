@@ -28,6 +28,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from cmc.bench import git_commit  # noqa: E402
 
 MEASURE = r"""
 import json, statistics, sys, time, torch
@@ -91,7 +94,7 @@ def main() -> None:
     report = {
         "command": "python bench/train_step.py " + " ".join(sys.argv[1:]),
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
-        "git_commit": git("rev-parse", "--short", "HEAD") + ("+dirty" if git("status", "--porcelain") else ""),
+        "git_commit": git_commit(),
         "before_commit": git("rev-parse", "--short", args.before),
         "machine": {
             "cpu": platform.processor() or platform.machine(),

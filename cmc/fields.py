@@ -203,25 +203,16 @@ class PyramidPlaneField(MPIField):
     def _sample_torch(self, g: torch.Tensor, bounds: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
         """The base colours [D, 3, R] and the summed levels [D, 4, R] at g [R, D, 2], with
         ``grid_sample`` (any device; :mod:`cmc.plane_sampling` computes the same on the CPU)."""
-        D = g.shape[1]
         grid = g.permute(1, 0, 2)[:, None]  # [D, 1, R, 2]
-        # One grid_sample over the G bases at once, each base's planes side by side; groups
-        # shorter than the longest are padded with points outside the plane (they sample zero).
-        # One call, not G: the backward pass then zeroes one gradient of the bases, not G.
-        sizes = [k1 - k0 for k0, k1 in zip(bounds[:-1], bounds[1:], strict=True)]
-        longest = max(sizes)
-        pad = grid.new_full((longest, 1, grid.shape[2], 2), 4.0)
-        per_base = torch.stack(
-            [torch.cat([grid[k0 : k0 + n], pad[: longest - n]]) for k0, n in zip(bounds[:-1], sizes, strict=True)]
+        base = torch.cat(
+            [
+                F.grid_sample(self.base[i : i + 1], grid[k0:k1].reshape(1, 1, -1, 2), align_corners=False)
+                .reshape(3, k1 - k0, -1)
+                .transpose(0, 1)
+                for i, (k0, k1) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))
+            ]
         )
-        base = F.grid_sample(self.base, per_base.reshape(len(sizes), 1, -1, 2), align_corners=False)  # [G, 3, 1, L R]
-        base = base.reshape(len(sizes), 3, longest, -1).transpose(1, 2)  # [G, L, 3, R]
-        if longest * len(sizes) == D:  # equal groups: a reshape, whose backward zeroes nothing
-            base = base.reshape(D, 3, -1)
-        else:
-            base = torch.cat([base[i, :n] for i, n in enumerate(sizes)])  # [D, 3, R]
-        # squeeze, not [:, :, 0]: the backward of an index zeroes a gradient the size of the samples
-        logits = sum(F.grid_sample(lvl, grid, align_corners=False).squeeze(2) for lvl in self.levels)  # [D, 4, R]
+        logits = sum(F.grid_sample(lvl, grid, align_corners=False).squeeze(2) for lvl in self.levels)
         return base, logits  # type: ignore[return-value]
 
     def smoothness(self) -> torch.Tensor:
