@@ -477,6 +477,7 @@ ABSENT_MEANS = {
     "model.pyramid.stereo_cost": "ad",
     "model.pyramid.stereo_supersample": 1,
     "model.pyramid.stereo_smoothness": [0.0, 0.0],
+    "model.pyramid.base_interpolation": "bilinear",
 }
 
 

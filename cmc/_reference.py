@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from cmc.cameras import pixel_rays
-from cmc.fields import MPIField
+from cmc.fields import MPIField, sample_colour_bicubic
 from cmc.geometry import pixel_centers
 from cmc.rendering import MPIFrame, RayOutput
 
@@ -61,6 +61,7 @@ def render_texture_image_reference(
     world_from_tgt: torch.Tensor,
     width: int,
     height: int,
+    straight_rgb: torch.Tensor | None = None,
 ) -> RayOutput:
     """Slow, obviously-correct twin of :func:`cmc.rendering.render_texture_image` for tests: one plane at a time,
     by intersecting each pixel's world-space ray with the plane and projecting the point into the
@@ -87,6 +88,9 @@ def render_texture_image_reference(
         g = frame.grid_from_pixels(pix[:, :2] / pix[:, 2:3])
         g = torch.where(in_front[:, None], g, torch.full_like(g, 3.0))
         s = F.grid_sample(rgba_premult[k : k + 1], g[None, None], align_corners=False)[0, :, 0].T  # [P, 4]
+        if straight_rgb is not None:  # bicubic straight colour times bilinear alpha
+            c = sample_colour_bicubic(straight_rgb[k : k + 1], g[None, None])[0, :, 0].T
+            s = torch.cat([c * s[:, 3:], s[:, 3:]], 1)
         rgb = rgb + trans[:, None] * s[:, :3]
         depth = depth + trans * s[:, 3] * torch.where(in_front, lam, torch.zeros_like(lam))
         trans = trans * (1 - s[:, 3])

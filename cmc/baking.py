@@ -10,6 +10,8 @@ On-disk format ``cmc-mpi`` version 1 (a folder; every file is browser-loadable):
      "near": n, "far": f,             # plane range, scene units
      "blend": {"weights": "inverse_square_distance", "eps_baseline_fraction": 0.1,
                "baseline": b},        # see cmc.geometry.blend_weights
+     "colour_interpolation": "bicubic",  # or "bilinear" (the default where absent): how a
+                                      # render samples colour between texels (cmc.texture_kernel.render)
      "mpis": [{"K": 3x3,              # reference intrinsics, pixels, corner-origin
                "world_from_cam": 4x4, # reference camera-to-world
                "depths": [D floats],  # plane depths (reference camera z), nearest first
@@ -172,6 +174,7 @@ def bake(
             "eps_baseline_fraction": 0.1,
             "baseline": mean_baseline(centers),
         },
+        "colour_interpolation": model.fields[0].colour_interpolation,
         "mpis": mpis,
     }
     tmp = out / (MANIFEST + ".tmp")
@@ -201,6 +204,7 @@ class BakedScene:
     near: float
     far: float
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    colour_interpolation: str = "bilinear"  # how renders sample colour between texels (cmc.texture_kernel.render)
     _fields: list[TextureField] | None = field(default=None, repr=False)
     _geometry: list[MPIGeometry] | None = field(default=None, repr=False)
 
@@ -237,8 +241,18 @@ class BakedScene:
             frames.append(
                 MPIFrame(t(e["K"]), t(e["world_from_cam"]), t(e["depths"]), m["width"], m["height"], float(e["margin"]))
             )
+        interpolation = m.get("colour_interpolation", "bilinear")  # absent from bakes before it existed
+        if interpolation not in ("bilinear", "bicubic"):
+            raise BakedFormatError(f"{folder / MANIFEST}: unknown colour_interpolation {interpolation!r}")
         return BakedScene(
-            packed, frames, int(m["width"]), int(m["height"]), float(m["near"]), float(m["far"]), torch.device(device)
+            packed,
+            frames,
+            int(m["width"]),
+            int(m["height"]),
+            float(m["near"]),
+            float(m["far"]),
+            torch.device(device),
+            interpolation,
         )
 
     @property
@@ -256,7 +270,10 @@ class BakedScene:
         """The textures as :class:`TextureField` (float32 on :attr:`device`), built on first use."""
         if self._fields is None:
             self._fields = [
-                TextureField(torch.as_tensor(t, device=self.device).permute(0, 3, 1, 2).float() / 255.0)
+                TextureField(
+                    torch.as_tensor(t, device=self.device).permute(0, 3, 1, 2).float() / 255.0,
+                    self.colour_interpolation,
+                )
                 for t in self.textures
             ]
         return self._fields
@@ -287,6 +304,15 @@ class BakedScene:
         P_t = torch.as_tensor(np.asarray(world_from_cam), dtype=torch.float32)
         weights, use = blend_selection(self.frames, P_t, mpi_index, min_weight)
         rgb, depth, acc = render_packed(
-            self.packed, self._geometry, weights.numpy(), use, K, world_from_cam, width, height, threads=threads
+            self.packed,
+            self._geometry,
+            weights.numpy(),
+            use,
+            K,
+            world_from_cam,
+            width,
+            height,
+            threads=threads,
+            colour_interpolation=self.colour_interpolation,
         )
         return ImageOutput(torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(acc))

@@ -94,7 +94,9 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       prior on each ray's opacity (cmc.losses.distortion) and a binary-entropy prior on the alpha
       a ray sees (cmc.losses.alpha_entropy: no faint fog in front of surfaces), a full-resolution
       base colour per group of 12 planes (``model.pyramid.base_groups=4``: a surface hidden in
-      the reference photo gets its own texture), and, behind an outline the plane sweep placed
+      the reference photo gets its own texture) sampled bicubically
+      (``model.pyramid.base_interpolation``: detail survives the sub-texel shifts of a novel
+      view), and, behind an outline the plane sweep placed
       with confidence, the farther surface nearby continued as a hidden layer in alpha and base
       colour (``stereo_hidden_radius=0.05``, ``stereo_hidden_confidence=0.5``: what a view beside
       the photo sees past the outline is background, not a smear of the occluder), and behind
@@ -155,6 +157,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
         model = ModelConfig(
             pyramid=PyramidFieldConfig(
                 base_groups=4,
+                base_interpolation="bicubic",
                 stereo_hidden_radius=0.05,
                 stereo_hidden_confidence=0.5,
                 stereo_hidden_colour_everywhere=True,

@@ -25,6 +25,7 @@ composited.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -44,6 +45,9 @@ class MPIField(nn.Module):
     """
 
     num_planes: int
+    # How a bake of this field is to sample its colours between texels (cmc.baking records it):
+    # "bilinear", or "bicubic" where the field itself samples its colours that way.
+    colour_interpolation: str = "bilinear"
 
 
 def _opaque_back(alpha: torch.Tensor) -> torch.Tensor:
@@ -99,6 +103,10 @@ class PyramidFieldConfig:
     scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane RGBA residual levels
     base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
     base_groups: int = 1  # base colours: one per group of adjacent planes (1 to num_planes)
+    # How rays sample the base colours: "bilinear", or "bicubic" (a sharper reconstruction: a
+    # texture seen at another sub-texel phase than it was fitted at keeps its detail; the bake
+    # records it and the renderers sample the baked colour the same way, see cmc.baking).
+    base_interpolation: Literal["bilinear", "bicubic"] = "bilinear"
     stereo_init: bool = True  # start alpha from plane-sweep photo-consistency (cmc.planesweep)
     # Softmin temperature of that prior (on the "ad" cost, mean abs colour difference; ``fast``
     # uses 0.2 on "ad_census" with semi-global aggregation, whose cost is on another scale). At
@@ -163,6 +171,7 @@ class PyramidPlaneField(MPIField):
         super().__init__()
         self.num_planes = num_planes
         self.cfg = cfg
+        self.colour_interpolation = cfg.base_interpolation
 
         def size(s: float) -> tuple[int, int]:
             return max(2, round(height * s)), max(2, round(width * s))
@@ -192,7 +201,7 @@ class PyramidPlaneField(MPIField):
         if plane_sampling.supported(g, self.parameters()):  # the compiled CPU sampler
             grid = g.transpose(0, 1)  # [D, R, 2]
             groups = [i for i in range(len(self.base)) for _ in range(bounds[i], bounds[i + 1])]
-            base = plane_sampling.sample_planes(grid, groups, [self.base])  # [D, 3, R]
+            base = plane_sampling.sample_planes(grid, groups, [self.base], self.cfg.base_interpolation)
             logits = plane_sampling.sample_planes(grid, range(D), list(self.levels))  # [D, 4, R]
         else:
             base, logits = self._sample_torch(g, bounds)
@@ -206,7 +215,12 @@ class PyramidPlaneField(MPIField):
         grid = g.permute(1, 0, 2)[:, None]  # [D, 1, R, 2]
         base = torch.cat(
             [
-                F.grid_sample(self.base[i : i + 1], grid[k0:k1].reshape(1, 1, -1, 2), align_corners=False)
+                F.grid_sample(
+                    self.base[i : i + 1],
+                    grid[k0:k1].reshape(1, 1, -1, 2),
+                    mode=self.cfg.base_interpolation,
+                    align_corners=False,
+                )
                 .reshape(3, k1 - k0, -1)
                 .transpose(0, 1)
                 for i, (k0, k1) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))
@@ -222,17 +236,34 @@ class PyramidPlaneField(MPIField):
 
 
 class TextureField(MPIField):
-    """Fixed RGBA plane textures [D, 4, h, w] (straight alpha), e.g. a baked MPI."""
+    """Fixed RGBA plane textures [D, 4, h, w] (straight alpha), e.g. a baked MPI.
 
-    def __init__(self, rgba: torch.Tensor):
+    Alpha is sampled bilinearly; colour bilinearly too (zero outside), or with
+    ``colour_interpolation="bicubic"`` by Keys' cubic kernel with the edge texels repeated,
+    clamped to [0, 1] (as :func:`cmc.texture_kernel.render` does).
+    """
+
+    def __init__(self, rgba: torch.Tensor, colour_interpolation: str = "bilinear"):
         super().__init__()
+        if colour_interpolation not in ("bilinear", "bicubic"):
+            raise ValueError(f"colour_interpolation must be 'bilinear' or 'bicubic', got {colour_interpolation!r}")
         self.num_planes = rgba.shape[0]
+        self.colour_interpolation = colour_interpolation
         self.register_buffer("rgba", rgba)
         # Premultiplied copy, back plane opaque, for whole-image rendering (render_texture_image).
         alpha = _opaque_back(rgba[:, 3].transpose(0, -1)).transpose(0, -1)[:, None]
         self.register_buffer("premultiplied", torch.cat([rgba[:, :3] * alpha, alpha], 1))
 
     def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
-        s = F.grid_sample(self.rgba, g.permute(1, 0, 2)[:, None], align_corners=False)[:, :, 0]  # [D, 4, R]
-        s = s.permute(2, 0, 1)
-        return s[..., :3], _opaque_back(s[..., 3])
+        grid = g.permute(1, 0, 2)[:, None]
+        s = F.grid_sample(self.rgba, grid, align_corners=False)[:, :, 0].permute(2, 0, 1)  # [R, D, 4]
+        rgb = s[..., :3]
+        if self.colour_interpolation == "bicubic":
+            rgb = sample_colour_bicubic(self.rgba[:, :3], grid)[:, :, 0].permute(2, 0, 1)
+        return rgb, _opaque_back(s[..., 3])
+
+
+def sample_colour_bicubic(rgb: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """Straight colours [N, 3, h, w] in [0, 1] sampled at ``grid_sample`` grid [N, H, W, 2] with
+    Keys' cubic kernel, edge texels repeated, clamped to [0, 1] -> [N, 3, H, W]."""
+    return F.grid_sample(rgb, grid, mode="bicubic", padding_mode="border", align_corners=False).clamp(0, 1)

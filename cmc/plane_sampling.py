@@ -1,9 +1,9 @@
-"""Compiled CPU bilinear sampling of plane textures, with its backward pass: what training spends
-most of its time on.
+"""Compiled CPU bilinear and bicubic sampling of plane textures, with its backward pass: what
+training spends most of its time on.
 
 :func:`sample_planes` computes ``sum_t grid_sample(textures[t], grid)`` as
-:func:`torch.nn.functional.grid_sample` does (bilinear, ``align_corners=False``, zero outside
-the texture), for the per-plane textures of :class:`cmc.fields.PyramidPlaneField`. On the CPU,
+:func:`torch.nn.functional.grid_sample` does (bilinear or bicubic, ``align_corners=False``,
+zero outside the texture), for the per-plane textures of :class:`cmc.fields.PyramidPlaneField`. On the CPU,
 torch's backward of ``grid_sample`` allocated and zeroed a gradient the size of every texture
 per call and scattered into it at about half the speed of the kernel here; a training step of
 fern spent about half its time there (bench/RESULTS.md, section "Training time").
@@ -111,21 +111,99 @@ def _backward(grad_out, grid, plane_texture, grad_tex, p0, p1):
                         grad_tex[t, c, y0 + 1, x0 + 1] += w11 * g
 
 
-@numba.njit(parallel=True, **_JIT)
-def _forward_parallel(tex, grid, plane_texture, out, cuts):
-    for i in numba.prange(len(cuts) - 1):
-        _forward(tex, grid, plane_texture, out, cuts[i], cuts[i + 1])
+CUBIC_A = -0.75  # the cubic convolution kernel's free parameter, as torch's bicubic grid_sample
+
+
+@numba.njit(**_JIT)
+def cubic_weights(t):
+    """The four weights of Keys' cubic convolution (A = CUBIC_A) for texels at offsets -1, 0, 1, 2
+    from a sample at fraction t in [0, 1) past texel 0; they sum to 1 (float32 in, float32 out)."""
+    a = np.float32(CUBIC_A)
+    u, v = t + np.float32(1), np.float32(1) - t  # distances to the outer taps are u and 2 - t
+    w0 = ((a * u - np.float32(5) * a) * u + np.float32(8) * a) * u - np.float32(4) * a
+    w1 = ((a + np.float32(2)) * t - (a + np.float32(3))) * t * t + np.float32(1)
+    w2 = ((a + np.float32(2)) * v - (a + np.float32(3))) * v * v + np.float32(1)
+    w3 = np.float32(1) - w0 - w1 - w2
+    return (w0, w1, w2, w3)
+
+
+@numba.njit(**_JIT)
+def _cubic_axis(g, n):
+    """Bicubic taps along one axis of grid coordinate g on n texels (``align_corners=False``):
+    the first of the four texels and their weights."""
+    i = ((g + np.float32(1)) * np.float32(n) - np.float32(1)) * np.float32(0.5)
+    f = np.floor(i)
+    return np.int64(f) - 1, cubic_weights(i - f)
+
+
+@numba.njit(**_JIT)
+def _forward_cubic(tex, grid, plane_texture, out, p0, p1):
+    """As :func:`_forward`, with bicubic taps (4 x 4 texels, zero outside)."""
+    C, H, W = tex.shape[1], tex.shape[2], tex.shape[3]
+    for k in range(p0, p1):
+        t = plane_texture[k]
+        for r in range(grid.shape[1]):
+            x0, wx = _cubic_axis(grid[k, r, 0], W)
+            y0, wy = _cubic_axis(grid[k, r, 1], H)
+            for c in range(C):
+                s = np.float32(0)
+                for a in range(4):
+                    y = y0 + a
+                    if 0 <= y < H:
+                        row = np.float32(0)
+                        for b in range(4):
+                            x = x0 + b
+                            if 0 <= x < W:
+                                row += wx[b] * tex[t, c, y, x]
+                        s += wy[a] * row
+                out[k, c, r] += s
+
+
+@numba.njit(**_JIT)
+def _backward_cubic(grad_out, grid, plane_texture, grad_tex, p0, p1):
+    """The transpose of :func:`_forward_cubic`, as :func:`_backward` is of :func:`_forward`."""
+    C, H, W = grad_tex.shape[1], grad_tex.shape[2], grad_tex.shape[3]
+    grad_tex[plane_texture[p0] : plane_texture[p1 - 1] + 1] = 0
+    for k in range(p0, p1):
+        t = plane_texture[k]
+        for r in range(grid.shape[1]):
+            x0, wx = _cubic_axis(grid[k, r, 0], W)
+            y0, wy = _cubic_axis(grid[k, r, 1], H)
+            for c in range(C):
+                g = grad_out[k, c, r]
+                for a in range(4):
+                    y = y0 + a
+                    if 0 <= y < H:
+                        ga = wy[a] * g
+                        for b in range(4):
+                            x = x0 + b
+                            if 0 <= x < W:
+                                grad_tex[t, c, y, x] += wx[b] * ga
 
 
 @numba.njit(parallel=True, **_JIT)
-def _backward_parallel(grad_out, grid, plane_texture, grad_tex, cuts):
+def _forward_parallel(tex, grid, plane_texture, out, cuts, cubic):
     for i in numba.prange(len(cuts) - 1):
-        _backward(grad_out, grid, plane_texture, grad_tex, cuts[i], cuts[i + 1])
+        if cubic:
+            _forward_cubic(tex, grid, plane_texture, out, cuts[i], cuts[i + 1])
+        else:
+            _forward(tex, grid, plane_texture, out, cuts[i], cuts[i + 1])
+
+
+@numba.njit(parallel=True, **_JIT)
+def _backward_parallel(grad_out, grid, plane_texture, grad_tex, cuts, cubic):
+    for i in numba.prange(len(cuts) - 1):
+        if cubic:
+            _backward_cubic(grad_out, grid, plane_texture, grad_tex, cuts[i], cuts[i + 1])
+        else:
+            _backward(grad_out, grid, plane_texture, grad_tex, cuts[i], cuts[i + 1])
 
 
 class _SamplePlanes(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, grid: torch.Tensor, plane_texture: np.ndarray, *textures: torch.Tensor) -> torch.Tensor:
+    def forward(
+        ctx, grid: torch.Tensor, plane_texture: np.ndarray, cubic: bool, *textures: torch.Tensor
+    ) -> torch.Tensor:
         D, R = grid.shape[:2]
         out = torch.zeros(D, textures[0].shape[1], R)
         numba.set_num_threads(min(numba.config.NUMBA_NUM_THREADS, torch.get_num_threads()))
@@ -133,9 +211,10 @@ class _SamplePlanes(torch.autograd.Function):
         g = grid.numpy()
         with _LAUNCH:
             for tex in textures:
-                _forward_parallel(tex.detach().numpy(), g, plane_texture, out.numpy(), chunks)
+                _forward_parallel(tex.detach().numpy(), g, plane_texture, out.numpy(), chunks, cubic)
         ctx.save_for_backward(grid)
-        ctx.plane_texture, ctx.chunks, ctx.shapes = plane_texture, chunks, [t.shape for t in textures]
+        ctx.plane_texture, ctx.chunks, ctx.cubic = plane_texture, chunks, cubic
+        ctx.shapes = [t.shape for t in textures]
         return out
 
     @staticmethod
@@ -143,15 +222,15 @@ class _SamplePlanes(torch.autograd.Function):
         (grid,) = ctx.saved_tensors
         go, g = grad_out.contiguous().numpy(), grid.numpy()
         grads = []
-        for shape, needed in zip(ctx.shapes, ctx.needs_input_grad[2:], strict=True):
+        for shape, needed in zip(ctx.shapes, ctx.needs_input_grad[3:], strict=True):
             gt = None
             if needed:
                 gt = torch.empty(shape)
                 with _LAUNCH:  # zeroes and fills the textures planes read
-                    _backward_parallel(go, g, ctx.plane_texture, gt.numpy(), ctx.chunks)
+                    _backward_parallel(go, g, ctx.plane_texture, gt.numpy(), ctx.chunks, ctx.cubic)
                 gt[np.setdiff1d(np.arange(shape[0]), ctx.plane_texture)] = 0  # and those none reads
             grads.append(gt)
-        return (None, None, *grads)
+        return (None, None, None, *grads)
 
 
 def supported(grid: torch.Tensor, textures: Sequence[torch.Tensor]) -> bool:
@@ -160,8 +239,11 @@ def supported(grid: torch.Tensor, textures: Sequence[torch.Tensor]) -> bool:
     return not grid.requires_grad and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
 
 
-def sample_planes(grid: torch.Tensor, plane_texture: Sequence[int], textures: Sequence[torch.Tensor]) -> torch.Tensor:
-    """Sum over ``textures`` of their bilinear samples: ``out[k, :, r]`` = sum_t of texture
+def sample_planes(
+    grid: torch.Tensor, plane_texture: Sequence[int], textures: Sequence[torch.Tensor], mode: str = "bilinear"
+) -> torch.Tensor:
+    """Sum over ``textures`` of their samples (``mode`` "bilinear" or "bicubic", as
+    ``grid_sample``'s): ``out[k, :, r]`` = sum_t of texture
     ``plane_texture[k]`` of ``textures[t]`` at grid point ``grid[k, r]`` (``grid_sample``
     coordinates, ``align_corners=False``, zero outside).
 
@@ -171,7 +253,10 @@ def sample_planes(grid: torch.Tensor, plane_texture: Sequence[int], textures: Se
     """
     if not supported(grid, textures):
         raise ValueError("sample_planes takes float32 CPU tensors and a grid without gradient")
-    return _SamplePlanes.apply(grid.contiguous(), np.asarray(plane_texture, np.int64), *textures)
+    if mode not in ("bilinear", "bicubic"):
+        raise ValueError(f"mode must be 'bilinear' or 'bicubic', got {mode!r}")
+    pt = np.asarray(plane_texture, np.int64)
+    return _SamplePlanes.apply(grid.contiguous(), pt, mode == "bicubic", *textures)
 
 
 def warm_up() -> None:
@@ -179,4 +264,5 @@ def warm_up() -> None:
     writable), so the first training step of a fresh process does not pay the compile; the
     Dockerfiles call it."""
     tex = torch.zeros(2, 4, 3, 3, requires_grad=True)
-    sample_planes(torch.zeros(2, 5, 2), [0, 1], [tex]).sum().backward()
+    for mode in ("bilinear", "bicubic"):
+        sample_planes(torch.zeros(2, 5, 2), [0, 1], [tex], mode).sum().backward()

@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from cmc.cameras import pixel_rays
-from cmc.fields import MPIField, TextureField
+from cmc.fields import MPIField, TextureField, sample_colour_bicubic
 from cmc.geometry import (
     apply_homography,
     blend_weights,
@@ -214,11 +214,15 @@ def render_texture_image(
     width: int,
     height: int,
     blocks: int | None = None,
+    straight_rgb: torch.Tensor | None = None,
 ) -> RayOutput:
     """Whole-image render of fixed textures: every plane warped by its homography, then composited.
 
     The fast path for baked MPIs (slow twin: :func:`cmc._reference.render_texture_image_reference`). Textures
-    are premultiplied, so sampling outside a plane (zero padding) is simply transparent.
+    are premultiplied, so sampling outside a plane (zero padding) is simply transparent. With
+    ``straight_rgb`` [D, 3, h, w] (the straight colours of the same planes), a sample's colour is
+    those colours sampled bicubically (:func:`cmc.fields.sample_colour_bicubic`) times its
+    bilinear alpha, as :class:`cmc.fields.TextureField` does with ``colour_interpolation="bicubic"``.
 
     Warp: let ``[R | t]`` = ref_from_tgt, ``d(p) = R K_tgt^-1 p`` the reference-frame direction
     of the ray through target pixel p (homogeneous, target z = 1) and ``e_k = z_k - t_z`` for
@@ -289,6 +293,9 @@ def render_texture_image(
             plane.sum()  # the streaming read that brings the plane's texels into cache
         torch.add(offsets[k], m_e_pos if e_list[k] > 0 else m_e_neg, alpha=scales[k], out=grid)
         s = F.grid_sample(plane.expand(B, 4, h, w), grid, align_corners=False)  # [B, 4, 1, Pb]
+        if straight_rgb is not None:
+            rgb = sample_colour_bicubic(straight_rgb[k : k + 1].expand(B, 3, h, w), grid)
+            s = torch.cat([rgb * s[:, 3:], s[:, 3:]], 1)
         depth_sum.add_(trans, alpha=depth_steps[k])
         out.addcmul_(s, trans)
         trans.addcmul_(trans, s[:, 3:], value=-1)  # T_{k+1} = T_k (1 - a_k)
@@ -335,7 +342,18 @@ def render_image(
     weights, use = blend_selection(frames, P_t, mpi_index, min_weight)
     parts = []
     if all(isinstance(fields[i], TextureField) for i in use):
-        outs = [render_texture_image(fields[i].premultiplied, frames[i], K_t, P_t, width, height) for i in use]
+        outs = [
+            render_texture_image(
+                fields[i].premultiplied,
+                frames[i],
+                K_t,
+                P_t,
+                width,
+                height,
+                straight_rgb=fields[i].rgba[:, :3] if fields[i].colour_interpolation == "bicubic" else None,
+            )
+            for i in use
+        ]
         parts.append(blend(outs, weights[use]))
     else:
         uv = pixel_centers(width, height, device)

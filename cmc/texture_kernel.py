@@ -7,7 +7,9 @@ straight from the 8-bit textures, so a loaded scene needs no float copy.
 Memory (:class:`PackedTextures`): every plane of every MPI in one buffer of 32-bit words, one
 RGBA texel (straight alpha, as in the atlases) per word, each plane framed by one transparent
 texel. A bilinear sample is four word loads, and a tap beyond the plane's edge reads the frame:
-zero padding without a branch or a clamp. Beside it, per texel one reach bit and per 8x8 texel
+zero padding without a branch or a clamp. A scene baked with bicubic colour
+(``colour_interpolation``) takes alpha the same way and colour from 16 texels, their indices
+clamped to the plane's edge. Beside it, per texel one reach bit and per 8x8 texel
 tile a summed-area table of occupancy (4 % more memory), both computed when a scene is loaded.
 
 Order of work: the target rows go in bands of ``ROWS``, a band in blocks of ``ROWS`` x ``COLS``
@@ -62,6 +64,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros  # numba's count of trailing zero bits (tzcnt); numba is pinned
+
+from cmc.plane_sampling import cubic_weights
 
 TILE_SHIFT = 3
 TILE = 1 << TILE_SHIFT  # texels per occupancy tile side
@@ -248,12 +252,13 @@ def _plane_params(g: MPIGeometry, h: int, w: int, K_tgt: np.ndarray, world_from_
 @numba.njit(nogil=True, cache=True, boundscheck=False, error_model="numpy", fastmath={"contract"})
 def _render_bands(
     texels, reach, base, shapes, sat, sbase, otiles, use, weights, Q, ax, bx, ay, by, e, split,
-    width, height, band0, band_step, rows, cols, min_trans, rgb, depth, acc,
+    width, height, band0, band_step, rows, cols, min_trans, cubic, rgb, depth, acc,
 ):  # pragma: no cover - compiled  # fmt: skip
     n_mpi = use.shape[0]
     inv255 = np.float32(1.0 / 255.0)
     inv255sq = np.float32(1.0 / 255.0**2)
     zero, one, t_min = np.float32(0.0), np.float32(1.0), np.float32(min_trans)
+    full = np.float32(255.0)
     slack = np.float32(1.0 / 64.0)  # widens a block's texel box past any rounding of the samples'
     u1 = np.uint64(1)
     n_blocks = (width + cols - 1) // cols
@@ -270,6 +275,7 @@ def _render_bands(
     live = np.empty(n_blocks, np.uint64)  # per block, its rays still compositing this MPI
     hit_s, hit_t = np.empty(slots, np.uint64), np.empty(slots, np.uint64)
     hit_wx, hit_wy = np.empty(slots, np.float32), np.empty(slots, np.float32)
+    hit_x, hit_y = np.empty(slots, np.int64), np.empty(slots, np.int64)  # framed top-left tap
     # Per block, the range of m over its live rays: the plane's texels they can sample lie in a box.
     mx_lo, mx_hi = np.empty(n_blocks, np.float32), np.empty(n_blocks, np.float32)
     my_lo, my_hi = np.empty(n_blocks, np.float32), np.empty(n_blocks, np.float32)
@@ -358,6 +364,7 @@ def _render_bands(
                             t = np.uint64(tex0 + y0 * stride + x0)
                             hit_s[n_hit], hit_t[n_hit] = s, t
                             hit_wx[n_hit], hit_wy[n_hit] = fx - np.float32(x0), fy - np.float32(y0)
+                            hit_x[n_hit], hit_y[n_hit] = x0, y0
                             # Kept only if its four taps have some alpha (no branch on the texels).
                             n_hit += (reach[t >> np.uint64(3)] >> (t & np.uint64(7))) & 1
                         for q in range(n_hit):
@@ -371,25 +378,44 @@ def _render_bands(
                             w11 = wy * wx * np.float32(p11 >> 24)
                             sa = w00 + w01 + w10 + w11
                             T = trans[g]
+                            if cubic:  # straight colour over 4 x 4 texels (edge texels repeated) x alpha
+                                cx, cy = cubic_weights(wx), cubic_weights(wy)
+                                sr, sg, sb = zero, zero, zero
+                                for a in range(4):
+                                    row = tex0 + min(max(hit_y[q] + a - 1, 1), h) * stride
+                                    rr, rg, rb = zero, zero, zero
+                                    for c4 in range(4):
+                                        p = texels[np.uint64(row + min(max(hit_x[q] + c4 - 1, 1), w))]
+                                        rr += cx[c4] * np.float32(p & 255)
+                                        rg += cx[c4] * np.float32((p >> 8) & 255)
+                                        rb += cx[c4] * np.float32((p >> 16) & 255)
+                                    sr, sg, sb = sr + cy[a] * rr, sg + cy[a] * rg, sb + cy[a] * rb
+                                sr = sa * min(max(sr, zero), full)
+                                sg = sa * min(max(sg, zero), full)
+                                sb = sa * min(max(sb, zero), full)
+                            else:  # premultiplied colour, bilinear
+                                sr = (
+                                    w00 * np.float32(p00 & 255)
+                                    + w01 * np.float32(p01 & 255)
+                                    + w10 * np.float32(p10 & 255)
+                                    + w11 * np.float32(p11 & 255)
+                                )
+                                sg = (
+                                    w00 * np.float32((p00 >> 8) & 255)
+                                    + w01 * np.float32((p01 >> 8) & 255)
+                                    + w10 * np.float32((p10 >> 8) & 255)
+                                    + w11 * np.float32((p11 >> 8) & 255)
+                                )
+                                sb = (
+                                    w00 * np.float32((p00 >> 16) & 255)
+                                    + w01 * np.float32((p01 >> 16) & 255)
+                                    + w10 * np.float32((p10 >> 16) & 255)
+                                    + w11 * np.float32((p11 >> 16) & 255)
+                                )
                             tc = T * inv255sq  # colour: texel colour x texel alpha, both 8-bit
-                            cr[g] += tc * (
-                                w00 * np.float32(p00 & 255)
-                                + w01 * np.float32(p01 & 255)
-                                + w10 * np.float32(p10 & 255)
-                                + w11 * np.float32(p11 & 255)
-                            )
-                            cg[g] += tc * (
-                                w00 * np.float32((p00 >> 8) & 255)
-                                + w01 * np.float32((p01 >> 8) & 255)
-                                + w10 * np.float32((p10 >> 8) & 255)
-                                + w11 * np.float32((p11 >> 8) & 255)
-                            )
-                            cb[g] += tc * (
-                                w00 * np.float32((p00 >> 16) & 255)
-                                + w01 * np.float32((p01 >> 16) & 255)
-                                + w10 * np.float32((p10 >> 16) & 255)
-                                + w11 * np.float32((p11 >> 16) & 255)
-                            )
+                            cr[g] += tc * sr
+                            cg[g] += tc * sg
+                            cb[g] += tc * sb
                             ta = T * sa * inv255
                             cd[g] += ta * ek
                             T -= ta
@@ -449,6 +475,7 @@ def render(
     height: int,
     min_transmittance: float = 1e-4,
     threads: int | None = None,
+    colour_interpolation: str = "bilinear",
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The blend of MPIs ``use`` (blend weights ``weights[i]``) seen from a target camera.
 
@@ -459,6 +486,12 @@ def render(
             cmc.cameras); width, height in pixels.
         min_transmittance: stop compositing an MPI's ray below this transmittance (0: never).
         threads: threads for this render (default: one per core); the result does not depend on it.
+        colour_interpolation: "bilinear": each sample is the bilinear blend of the four texels'
+            premultiplied colour and alpha; "bicubic": alpha as before, times the straight colour
+            of the 4 x 4 texels around it under Keys' cubic kernel (:func:`cmc.plane_sampling.cubic_weights`,
+            texels past the plane's edge repeat the edge), clamped to [0, 1]: how
+            :class:`cmc.fields.PyramidPlaneField` samples its base colours with
+            ``base_interpolation="bicubic"``.
     Returns:
         as :func:`cmc.rendering.blend`: rgb [height, width, 3] (colour times coverage), depth
         [height, width] (target z, 0 where the coverage is below 1e-3), coverage [height, width],
@@ -476,6 +509,9 @@ def render(
         Q[j], ax[j, :D], bx[j, :D], ay[j, :D], by[j, :D], e[j, :D], split[j] = _plane_params(
             mpis[i], int(h), int(w), K_tgt, world_from_tgt
         )
+    if colour_interpolation not in ("bilinear", "bicubic"):
+        raise ValueError(f"colour_interpolation must be 'bilinear' or 'bicubic', got {colour_interpolation!r}")
+    cubic = colour_interpolation == "bicubic"
     w_use = np.asarray(weights, np.float64)[use_a]
     rgb = np.empty((height, width, 3), np.float32)
     depth = np.empty((height, width), np.float32)
@@ -486,7 +522,7 @@ def render(
         _render_bands(
             packed.texels, packed.reach, packed.base, packed.shapes, packed.sat, packed.sbase, packed.otiles,
             use_a, w_use, Q, ax, bx, ay, by, e, split, width, height, band0, n, ROWS, COLS,
-            float(min_transmittance), rgb, depth, acc,
+            float(min_transmittance), cubic, rgb, depth, acc,
         )  # fmt: skip
 
     others = [_pool().submit(part, t) for t in range(1, n)]
@@ -502,4 +538,5 @@ def warm_up() -> None:
     K = np.array([[4.0, 0, 2], [0, 4.0, 2], [0, 0, 1]])
     packed = PackedTextures.pack([np.full((2, 4, 4, 4), 255, dtype=np.uint8)])
     g = MPIGeometry(K, np.eye(4), np.array([1.0, 2.0]), 4, 4, 1.0)
-    render(packed, [g], np.ones(1), [0], K, np.eye(4), 4, 4)
+    for mode in ("bilinear", "bicubic"):
+        render(packed, [g], np.ones(1), [0], K, np.eye(4), 4, 4, colour_interpolation=mode)

@@ -13,6 +13,7 @@ from cmc._reference import render_texture_image_reference
 from cmc.baking import BakedFormatError, BakedScene, bake, quantize_planes
 from cmc.config import preset_config
 from cmc.datasets import synthetic_scene
+from cmc.fields import PyramidPlaneField
 from cmc.geometry import blend_weights, mean_baseline, sample_virtual_pose
 from cmc.metrics import psnr
 from cmc.rendering import blend
@@ -63,8 +64,9 @@ def test_baked_render_matches_slow_twin(trained, tmp_path):
     for pose in poses:
         P = torch.as_tensor(pose, dtype=torch.float32)
         fast = baked.render(K.numpy(), pose)
+        cubic = baked.colour_interpolation == "bicubic"
         twins = [
-            render_texture_image_reference(f.premultiplied, fr, K, P, W, H)
+            render_texture_image_reference(f.premultiplied, fr, K, P, W, H, f.rgba[:, :3] if cubic else None)
             for f, fr in zip(baked.fields, baked.frames, strict=True)
         ]
         slow = blend(twins, blend_weights(centers, P[:3, 3], mean_baseline(centers)))
@@ -81,6 +83,17 @@ def test_manifest_describes_the_atlases(trained, tmp_path):
     out = bake(model, tmp_path / "b")
     m = json.loads((out / "mpi.json").read_text())
     assert m["format"] == "cmc-mpi" and m["version"] == 1 and m["convention"] == "opencv"
+    # How renders sample colour is the field's: `fast` samples its base colours bicubically,
+    # `paper`'s MLP is baked to texels that renders sample bilinearly.
+    expected = "bicubic" if isinstance(model.fields[0], PyramidPlaneField) else "bilinear"
+    assert m["colour_interpolation"] == expected == BakedScene.load(out).colour_interpolation
+    # A bake from before the key existed renders bilinearly; an unknown value is refused.
+    del m["colour_interpolation"]
+    (out / "mpi.json").write_text(json.dumps(m))
+    assert BakedScene.load(out).colour_interpolation == "bilinear"
+    (out / "mpi.json").write_text(json.dumps({**m, "colour_interpolation": "lanczos"}))
+    with pytest.raises(BakedFormatError, match="colour_interpolation"):
+        BakedScene.load(out)
     assert len(m["mpis"]) == 3
     for e in m["mpis"]:
         assert len(e["depths"]) == 10 and e["depths"] == sorted(e["depths"])

@@ -11,7 +11,7 @@ import torch
 from cmc._reference import render_texture_image_reference
 from cmc.baking import BakedScene
 from cmc.cameras import look_at
-from cmc.rendering import MPIFrame, blend
+from cmc.rendering import MPIFrame, blend, render_texture_image
 from cmc.texture_kernel import COLS, ROWS, TILE, MPIGeometry, PackedTextures, occupancy, occupied_tiles, reach, render
 
 W, H, D = 40, 30, 6
@@ -114,6 +114,42 @@ def test_kernel_equals_the_slow_twin_at_sizes_that_leave_blocks_part_full(camera
     tex = _textures(np.random.default_rng(5))
     P = CAMERAS[camera]
     _assert_close(_fast([tex], [FRAME], np.ones(1), P, size=size), _twin([tex], [FRAME], np.ones(1), P, size))
+
+
+@pytest.mark.parametrize("camera", ["reference", "sideways", "outside the capture", "behind all planes, looking back"])
+def test_bicubic_colour_in_the_kernel_is_the_torch_renderers(camera):
+    """``colour_interpolation="bicubic"``: the kernel (alpha bilinear, straight colour over 4 x 4
+    texels, edges repeated) against cmc.rendering's whole-image path given the straight colours,
+    with every plane's colours noisy so that a wrong tap shows; on 1 and 3 threads, and with
+    empty blocks and transparent samples skipped or not (skipping stays exact)."""
+    tex = _textures(np.random.default_rng(8))
+    P = CAMERAS[camera]
+    packed = PackedTextures.pack([tex])
+    geometry = [MPIGeometry.from_frame(FRAME)]
+    everything = replace(
+        packed, reach=np.full_like(packed.reach, 255), sat=occupied_tiles(np.ones_like(occupancy(tex))).reshape(-1)
+    )
+    runs = [
+        render(p, geometry, np.ones(1), [0], K, P, W, H, 0.0, n, colour_interpolation="bicubic")
+        for p, n in ((packed, 1), (packed, 3), (everything, 1))
+    ]
+    assert all(np.array_equal(a, b) for run in runs[1:] for a, b in zip(runs[0], run, strict=True))
+    straight = torch.as_tensor(tex).permute(0, 3, 1, 2).float() / 255.0
+    Kt, Pt = torch.as_tensor(K, dtype=torch.float32), torch.as_tensor(P, dtype=torch.float32)
+    torch_out = render_texture_image(_premultiplied(tex), FRAME, Kt, Pt, W, H, straight_rgb=straight[:, :3])
+    _assert_close(runs[0], blend([torch_out], torch.ones(1)))
+    bilinear = _fast([tex], [FRAME], np.ones(1), P)
+    # The reference camera's pixels fall on texel centres (this frame's texels are its pixels),
+    # where both kernels return the texel; elsewhere the colours differ.
+    differ = np.abs(bilinear[0] - runs[0][0]).max()
+    assert differ < 1e-5 if camera == "reference" else differ > 0.05
+    assert np.array_equal(bilinear[2], runs[0][2])  # the coverage does not: alpha stays bilinear
+
+
+def test_the_kernel_refuses_an_unknown_interpolation():
+    with pytest.raises(ValueError, match="colour_interpolation"):
+        render(PackedTextures.pack([_textures(np.random.default_rng(9))]), [MPIGeometry.from_frame(FRAME)],
+               np.ones(1), [0], K, np.eye(4), W, H, colour_interpolation="nearest")  # fmt: skip
 
 
 @pytest.mark.parametrize("camera", list(CAMERAS))
