@@ -353,6 +353,12 @@ FERN_STEPS = [
     ("rerun_sampler", "`fast` now, rerun in a later session (the same scores)"),
     ("sampler", SAMPLER_LABEL),
     ("sampler_planes80", PLANES80_LABEL),
+    (
+        "cubic_alpha",
+        "`fast` now with the finest per-plane level (alpha and colour residual, half resolution) also sampled "
+        "bicubically in training; the bake and renderers unchanged (not adopted: +0.01 dB, SSIM -0.001, LPIPS-vgg "
+        "+0.001; tried in an uncommitted tree, the synthetic set was not run)",
+    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
@@ -1153,7 +1159,8 @@ def main() -> None:
             "Command: `make demo`, i.e. `cmc demo --out demo-output` (its summary.json copied to "
             "bench/demo_cpu.json; the first view-quality preset's to bench/demo_cpu_before.json).  \n"
             "Machine: the same 2-core CPU box, no GPU, nothing else running. "
-            "Date: 2026-11-25, `fast` with semi-global aggregation of the plane sweep's cost, trained with the "
+            "Date: 2026-11-25, `fast` with semi-global aggregation of the plane sweep's cost and bicubic base "
+            "colours, trained with the "
             "compiled texture sampler (before: 2026-11-23, "
             "the `fast` preset of the first view-quality session).\n",
             f"- training: {demo['steps']} steps in {demo['train_seconds']:.0f} s "
