@@ -49,6 +49,7 @@ from cmc.fields import MPIField, TextureField
 from cmc.geometry import mean_baseline, texel_grid
 from cmc.images import to_uint8
 from cmc.model import CMCModel
+from cmc.plane_sampling import INTERPOLATIONS
 from cmc.rendering import ImageOutput, MPIFrame, blend_selection, render_image
 
 if TYPE_CHECKING:
@@ -242,7 +243,7 @@ class BakedScene:
                 MPIFrame(t(e["K"]), t(e["world_from_cam"]), t(e["depths"]), m["width"], m["height"], float(e["margin"]))
             )
         interpolation = m.get("colour_interpolation", "bilinear")  # absent from bakes before it existed
-        if interpolation not in ("bilinear", "bicubic"):
+        if interpolation not in INTERPOLATIONS:
             raise BakedFormatError(f"{folder / MANIFEST}: unknown colour_interpolation {interpolation!r}")
         return BakedScene(
             packed,

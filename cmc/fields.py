@@ -245,7 +245,7 @@ class TextureField(MPIField):
 
     def __init__(self, rgba: torch.Tensor, colour_interpolation: str = "bilinear"):
         super().__init__()
-        if colour_interpolation not in ("bilinear", "bicubic"):
+        if colour_interpolation not in plane_sampling.INTERPOLATIONS:
             raise ValueError(f"colour_interpolation must be 'bilinear' or 'bicubic', got {colour_interpolation!r}")
         self.num_planes = rgba.shape[0]
         self.colour_interpolation = colour_interpolation
@@ -256,11 +256,12 @@ class TextureField(MPIField):
 
     def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
         grid = g.permute(1, 0, 2)[:, None]
-        s = F.grid_sample(self.rgba, grid, align_corners=False)[:, :, 0].permute(2, 0, 1)  # [R, D, 4]
-        rgb = s[..., :3]
-        if self.colour_interpolation == "bicubic":
+        if self.colour_interpolation == "bicubic":  # colour bicubic, alpha alone bilinear
             rgb = sample_colour_bicubic(self.rgba[:, :3], grid)[:, :, 0].permute(2, 0, 1)
-        return rgb, _opaque_back(s[..., 3])
+            alpha = F.grid_sample(self.rgba[:, 3:], grid, align_corners=False)[:, 0, 0].T  # [R, D]
+            return rgb, _opaque_back(alpha)
+        s = F.grid_sample(self.rgba, grid, align_corners=False)[:, :, 0].permute(2, 0, 1)  # [R, D, 4]
+        return s[..., :3], _opaque_back(s[..., 3])
 
 
 def sample_colour_bicubic(rgb: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:

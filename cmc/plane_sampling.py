@@ -111,6 +111,7 @@ def _backward(grad_out, grid, plane_texture, grad_tex, p0, p1):
                         grad_tex[t, c, y0 + 1, x0 + 1] += w11 * g
 
 
+INTERPOLATIONS = ("bilinear", "bicubic")  # the sampling kernels here, by grid_sample's names
 CUBIC_A = -0.75  # the cubic convolution kernel's free parameter, as torch's bicubic grid_sample
 
 
@@ -253,7 +254,7 @@ def sample_planes(
     """
     if not supported(grid, textures):
         raise ValueError("sample_planes takes float32 CPU tensors and a grid without gradient")
-    if mode not in ("bilinear", "bicubic"):
+    if mode not in INTERPOLATIONS:
         raise ValueError(f"mode must be 'bilinear' or 'bicubic', got {mode!r}")
     pt = np.asarray(plane_texture, np.int64)
     return _SamplePlanes.apply(grid.contiguous(), pt, mode == "bicubic", *textures)
@@ -264,5 +265,5 @@ def warm_up() -> None:
     writable), so the first training step of a fresh process does not pay the compile; the
     Dockerfiles call it."""
     tex = torch.zeros(2, 4, 3, 3, requires_grad=True)
-    for mode in ("bilinear", "bicubic"):
+    for mode in INTERPOLATIONS:
         sample_planes(torch.zeros(2, 5, 2), [0, 1], [tex], mode).sum().backward()

@@ -292,10 +292,12 @@ def render_texture_image(
         if dev.type == "cpu":
             plane.sum()  # the streaming read that brings the plane's texels into cache
         torch.add(offsets[k], m_e_pos if e_list[k] > 0 else m_e_neg, alpha=scales[k], out=grid)
-        s = F.grid_sample(plane.expand(B, 4, h, w), grid, align_corners=False)  # [B, 4, 1, Pb]
-        if straight_rgb is not None:
+        if straight_rgb is None:
+            s = F.grid_sample(plane.expand(B, 4, h, w), grid, align_corners=False)  # [B, 4, 1, Pb]
+        else:  # the alpha channel alone bilinear, the colour bicubic
+            a = F.grid_sample(plane[:, 3:].expand(B, 1, h, w), grid, align_corners=False)
             rgb = sample_colour_bicubic(straight_rgb[k : k + 1].expand(B, 3, h, w), grid)
-            s = torch.cat([rgb * s[:, 3:], s[:, 3:]], 1)
+            s = torch.cat([rgb * a, a], 1)
         depth_sum.add_(trans, alpha=depth_steps[k])
         out.addcmul_(s, trans)
         trans.addcmul_(trans, s[:, 3:], value=-1)  # T_{k+1} = T_k (1 - a_k)

@@ -65,7 +65,7 @@ import numba
 import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros  # numba's count of trailing zero bits (tzcnt); numba is pinned
 
-from cmc.plane_sampling import cubic_weights
+from cmc.plane_sampling import INTERPOLATIONS, cubic_weights
 
 TILE_SHIFT = 3
 TILE = 1 << TILE_SHIFT  # texels per occupancy tile side
@@ -509,7 +509,7 @@ def render(
         Q[j], ax[j, :D], bx[j, :D], ay[j, :D], by[j, :D], e[j, :D], split[j] = _plane_params(
             mpis[i], int(h), int(w), K_tgt, world_from_tgt
         )
-    if colour_interpolation not in ("bilinear", "bicubic"):
+    if colour_interpolation not in INTERPOLATIONS:
         raise ValueError(f"colour_interpolation must be 'bilinear' or 'bicubic', got {colour_interpolation!r}")
     cubic = colour_interpolation == "bicubic"
     w_use = np.asarray(weights, np.float64)[use_a]
@@ -538,5 +538,5 @@ def warm_up() -> None:
     K = np.array([[4.0, 0, 2], [0, 4.0, 2], [0, 0, 1]])
     packed = PackedTextures.pack([np.full((2, 4, 4, 4), 255, dtype=np.uint8)])
     g = MPIGeometry(K, np.eye(4), np.array([1.0, 2.0]), 4, 4, 1.0)
-    for mode in ("bilinear", "bicubic"):
+    for mode in INTERPOLATIONS:
         render(packed, [g], np.ones(1), [0], K, np.eye(4), 4, 4, colour_interpolation=mode)
