@@ -365,6 +365,23 @@ FERN_STEPS = [
         "+0.001; tried in an uncommitted tree, the synthetic set was not run)",
     ),
     ("cubic_s600", S600_CUBIC_LABEL),
+    (
+        "jitter",
+        "`fast` now with each input ray at a uniform position within its pixel, its target the photo sampled there "
+        "with Keys' cubic kernel, so that textures are fitted at every sub-texel phase (not adopted: +0.06 dB, "
+        "SSIM +0.003, but LPIPS-alex +0.010, LPIPS-vgg +0.005: the interpolated targets are softer and so are the "
+        "textures; the synthetic set was not run; the option was removed; code: commit 00882e2)",
+    ),
+    (
+        "baselr2",
+        "`fast` now with twice the learning rate on the full-resolution base colours (not adopted: SSIM -0.003, "
+        "LPIPS-vgg +0.003; the option was removed; code: commit 00882e2)",
+    ),
+    (
+        "baselr05",
+        "`fast` now with half the learning rate on the full-resolution base colours (not adopted: +0.04 dB, SSIM "
+        "+0.002, LPIPS-alex +0.003, LPIPS-vgg the same: noise; the option was removed; code: commit 00882e2)",
+    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
@@ -533,6 +550,8 @@ REMOVED_OPTIONS = {
     "model.pyramid.stereo_hidden_cross_check": False,
     "model.pyramid.stereo_hidden_nearest": False,
     "model.pyramid.alpha_guide_scale": 0.0,
+    "ray_jitter": 0.0,
+    "base_lr_scale": 1.0,
 }
 
 

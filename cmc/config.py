@@ -53,16 +53,11 @@ class TrainConfig:
     preset: Preset = "fast"
     steps: int = 400
     rays_per_view: int = 2048  # rays drawn from every input view per step
-    # Each input ray's position within its pixel: 0 = the pixel centre (the photo's own value);
-    # s > 0 = uniform over a square s pixels wide about the centre, the target colour the photo
-    # sampled there with Keys' cubic kernel (cmc.training.Trainer._targets).
-    ray_jitter: float = 0.0
     unseen_rays: int = 2048  # rays drawn at each unseen pose per step
     unseen_poses: int = 1  # unseen poses per step
     unseen_jitter: float = 0.1  # std of the unseen-pose centre jitter, in mean baselines
     lr: float = 0.05  # Adam learning rate at step 0 ...
     lr_final: float = 0.005  # ... decaying exponentially to this at the last step
-    base_lr_scale: float = 1.0  # factor on the learning rate of the full-resolution base colours
     seed: int = 0
     checkpoint_every: int = 250  # steps between checkpoints (when a checkpoint path is given)
     model: ModelConfig = field(default_factory=ModelConfig)

@@ -22,7 +22,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from cmc.config import TrainConfig
 from cmc.datasets import Scene, validate_scene
@@ -101,14 +100,8 @@ class Trainer:
         self.device = torch.device(device)
         torch.manual_seed(cfg.seed)
         self.model = CMCModel(scene, cfg.model, self.device)
-        base = [p for n, p in self.model.named_parameters() if n.endswith(".base")]
-        rest = [p for n, p in self.model.named_parameters() if not n.endswith(".base")]
-        groups = [{"params": rest, "scale": 1.0}]
-        if base:
-            groups.append({"params": base, "scale": cfg.base_lr_scale})
-        self.optimizer = torch.optim.Adam(groups, lr=cfg.lr, fused=True)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, fused=True)
         self.images = torch.as_tensor(scene.images, device=self.device).reshape(len(scene), -1, 3)
-        self.photos = torch.as_tensor(scene.images, device=self.device).permute(0, 3, 1, 2)  # [N, 3, H, W]
         self.K = torch.as_tensor(scene.cameras.K, dtype=torch.float32, device=self.device)
         self.poses = torch.as_tensor(scene.cameras.world_from_cam, dtype=torch.float32, device=self.device)
         self.depth_scale = scene.far - scene.near
@@ -116,9 +109,8 @@ class Trainer:
 
     # -- one step ---------------------------------------------------------------------------
 
-    def _random_pixels(self, gen: torch.Generator, n: int, jitter: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
-        """n random pixel indices, in row-major order, and ray positions [n, 2] in pixels: the
-        centres, moved by up to ``jitter / 2`` pixels in each direction (uniformly).
+    def _random_pixels(self, gen: torch.Generator, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """n random pixel indices, in row-major order, and their centre coordinates [n, 2].
 
         In order, neighbouring rays sample neighbouring texels: the textures' samples and their
         gradients stay in the CPU's caches (cmc.plane_sampling samples about twice as fast so,
@@ -126,20 +118,7 @@ class Trainer:
         w, h = self.scene.cameras.width, self.scene.cameras.height
         idx = torch.randint(0, w * h, (n,), generator=gen).sort().values.to(self.device)
         uv = torch.stack([idx % w, idx // w], -1).float() + 0.5
-        if jitter > 0:
-            uv = uv + (torch.rand(n, 2, generator=gen).to(self.device) - 0.5) * jitter
         return idx, uv
-
-    def _targets(self, view: int, idx: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-        """[n, 3] colours of input photo ``view`` at rays (pixel indices idx, positions uv [n, 2]):
-        the pixels themselves at their centres, else the photo sampled with Keys' cubic kernel
-        (edges repeated, clamped to [0, 1])."""
-        if self.cfg.ray_jitter <= 0:
-            return self.images[view][idx]
-        h, w = self.photos.shape[-2:]
-        grid = (uv / uv.new_tensor([w, h]) * 2 - 1).reshape(1, 1, -1, 2)
-        c = F.grid_sample(self.photos[view : view + 1], grid, mode="bicubic", padding_mode="border", align_corners=False)
-        return c[0, :, 0].T.clamp(0, 1)
 
     def _colour_grads(self, mpi: int) -> list[float]:
         """Factor on the colour gradients of MPI ``mpi`` from each input view's rays."""
@@ -156,9 +135,9 @@ class Trainer:
         # Target cameras of this step: every input view, then the unseen poses.
         groups, targets = [], []
         for j in range(len(self.scene)):
-            idx, uv = self._random_pixels(gen, cfg.rays_per_view, cfg.ray_jitter)
+            idx, uv = self._random_pixels(gen, cfg.rays_per_view)
             groups.append((self.K[j], self.poses[j], uv))
-            targets.append(self._targets(j, idx, uv))
+            targets.append(self.images[j][idx])
         use_unseen = full and (lc.lambda_ac > 0 or lc.lambda_dc > 0)
         for _ in range(cfg.unseen_poses if use_unseen else 0):
             pose = sample_virtual_pose(self.scene.cameras.world_from_cam, rng, cfg.unseen_jitter)
@@ -210,7 +189,7 @@ class Trainer:
 
     def train_step(self) -> dict[str, float]:
         for g in self.optimizer.param_groups:
-            g["lr"] = lr_at(self.cfg, self.step) * g["scale"]
+            g["lr"] = lr_at(self.cfg, self.step)
         self.optimizer.zero_grad(set_to_none=True)
         losses = self.compute_losses(self.step)
         loss = losses["total"]
