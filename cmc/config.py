@@ -58,9 +58,6 @@ class TrainConfig:
     unseen_jitter: float = 0.1  # std of the unseen-pose centre jitter, in mean baselines
     lr: float = 0.05  # Adam learning rate at step 0 ...
     lr_final: float = 0.005  # ... decaying exponentially to this at the last step
-    # Coarse to fine: the finest per-plane level's alpha (pyramid fields) is held until this
-    # fraction of the steps, so early geometry changes are smooth corrections of the start.
-    fine_alpha_from: float = 0.0
     seed: int = 0
     checkpoint_every: int = 250  # steps between checkpoints (when a checkpoint path is given)
     model: ModelConfig = field(default_factory=ModelConfig)

@@ -196,11 +196,6 @@ class Trainer:
         if not torch.isfinite(loss):
             raise FloatingPointError(f"loss became {loss.item()} at step {self.step}")
         loss.backward()
-        if self.step < self.cfg.fine_alpha_from * self.cfg.steps:
-            for f in self.model.fields:
-                levels = getattr(f, "levels", None)
-                if levels is not None and levels[0].grad is not None:
-                    levels[0].grad[:, 3] = 0
         self.optimizer.step()
         self.step += 1
         return {k: float(v.detach()) for k, v in losses.items()}
