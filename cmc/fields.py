@@ -102,7 +102,7 @@ class PyramidFieldConfig:
 
     scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane RGBA residual levels
     base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
-    base_groups: int = 1  # base colours: one per group of adjacent planes (1 to num_planes)
+    base_groups: int = 1  # base colours: one per group of adjacent planes (CMCModel: at most one per plane)
     # How rays sample the base colours: "bilinear", or "bicubic" (a sharper reconstruction: a
     # texture seen at another sub-texel phase than it was fitted at keeps its detail; the bake
     # records it and the renderers sample the baked colour the same way, see cmc.baking).

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -66,6 +68,10 @@ class CMCModel(nn.Module):
 
     def __init__(self, scene: Scene, cfg: ModelConfig, device: torch.device | str = "cpu"):
         super().__init__()
+        # A preset's base colour groups may outnumber the planes of a model set smaller by hand
+        # (``model.num_planes=4`` under ``fast``'s 8 groups): then one base per plane.
+        groups = min(cfg.pyramid.base_groups, cfg.num_planes)
+        cfg = replace(cfg, pyramid=replace(cfg.pyramid, base_groups=groups))
         self.cfg = cfg
         self.near, self.far = scene.near, scene.far
         cams = scene.cameras

@@ -437,3 +437,23 @@ def test_pyramid_base_groups_give_plane_k_the_base_k_times_g_over_d(num_planes):
     assert changed.tolist() == [k * 3 // D == 1 for k in range(D)]
     with pytest.raises(ConfigError):
         PyramidPlaneField(2, h, w, PyramidFieldConfig(base_groups=3), rgb, alpha[:2])
+
+
+def test_a_model_with_fewer_planes_than_the_presets_base_groups_gets_one_base_per_plane():
+    """``fast`` has 8 base colour groups; a model set to 4 planes by hand builds with one base per
+    plane instead of refusing a setting the user did not make, and renders its input view."""
+    from dataclasses import replace
+
+    from cmc.config import preset_config
+    from cmc.datasets import synthetic_scene
+    from cmc.model import CMCModel
+
+    cfg = preset_config("fast").model
+    assert cfg.pyramid.base_groups == 8
+    scene = synthetic_scene(num_views=3, width=32, height=24)
+    model = CMCModel(scene, replace(cfg, num_planes=4))
+    assert model.cfg.pyramid.base_groups == 4
+    assert [f.base.shape[0] for f in model.fields] == [4, 4, 4]
+    with torch.no_grad():
+        out = model.render(scene.cameras.K[0], scene.cameras.world_from_cam[0], 32, 24)
+    assert psnr(out.rgb, scene.images[0]) > 20  # untrained: each base starts as the photo
