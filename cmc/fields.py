@@ -245,8 +245,7 @@ class TextureField(MPIField):
 
     def __init__(self, rgba: torch.Tensor, colour_interpolation: str = "bilinear"):
         super().__init__()
-        if colour_interpolation not in plane_sampling.INTERPOLATIONS:
-            raise ValueError(f"colour_interpolation must be 'bilinear' or 'bicubic', got {colour_interpolation!r}")
+        plane_sampling.check_interpolation(colour_interpolation, "colour_interpolation")
         self.num_planes = rgba.shape[0]
         self.colour_interpolation = colour_interpolation
         self.register_buffer("rgba", rgba)

@@ -49,11 +49,17 @@ _JIT = dict(nogil=True, cache=True, boundscheck=False, error_model="numpy", fast
 
 
 @numba.njit(**_JIT)
+def _texel_coord(g, n):
+    """Texel coordinate (texel centres at 0, 1, ...) of grid coordinate g on n texels, as
+    ``grid_sample(align_corners=False)``: g = -1 and 1 are the outer edges of the texture."""
+    return ((g + np.float32(1)) * np.float32(n) - np.float32(1)) * np.float32(0.5)
+
+
+@numba.njit(**_JIT)
 def _taps(gx, gy, H, W):
     """Bilinear taps of grid point (gx, gy) on an H x W texture (``align_corners=False``):
     top-left texel (x0, y0), the four weights, and which of the two columns / rows lie inside."""
-    ix = ((gx + np.float32(1)) * np.float32(W) - np.float32(1)) * np.float32(0.5)
-    iy = ((gy + np.float32(1)) * np.float32(H) - np.float32(1)) * np.float32(0.5)
+    ix, iy = _texel_coord(gx, W), _texel_coord(gy, H)
     fx, fy = np.floor(ix), np.floor(iy)
     x0, y0 = np.int64(fx), np.int64(fy)
     ax, ay = ix - fx, iy - fy
@@ -115,6 +121,13 @@ INTERPOLATIONS = ("bilinear", "bicubic")  # the sampling kernels here, by grid_s
 CUBIC_A = -0.75  # the cubic convolution kernel's free parameter, as torch's bicubic grid_sample
 
 
+def check_interpolation(value: str, name: str) -> None:
+    """Raise ValueError unless ``value`` is one of :data:`INTERPOLATIONS` (``name``: the setting's
+    name, for the message)."""
+    if value not in INTERPOLATIONS:
+        raise ValueError(f"{name} must be one of {', '.join(map(repr, INTERPOLATIONS))}, got {value!r}")
+
+
 @numba.njit(**_JIT)
 def cubic_weights(t):
     """The four weights of Keys' cubic convolution (A = CUBIC_A) for texels at offsets -1, 0, 1, 2
@@ -132,7 +145,7 @@ def cubic_weights(t):
 def _cubic_axis(g, n):
     """Bicubic taps along one axis of grid coordinate g on n texels (``align_corners=False``):
     the first of the four texels and their weights."""
-    i = ((g + np.float32(1)) * np.float32(n) - np.float32(1)) * np.float32(0.5)
+    i = _texel_coord(g, n)
     f = np.floor(i)
     return np.int64(f) - 1, cubic_weights(i - f)
 
@@ -254,8 +267,7 @@ def sample_planes(
     """
     if not supported(grid, textures):
         raise ValueError("sample_planes takes float32 CPU tensors and a grid without gradient")
-    if mode not in INTERPOLATIONS:
-        raise ValueError(f"mode must be 'bilinear' or 'bicubic', got {mode!r}")
+    check_interpolation(mode, "mode")
     pt = np.asarray(plane_texture, np.int64)
     return _SamplePlanes.apply(grid.contiguous(), pt, mode == "bicubic", *textures)
 

@@ -65,7 +65,7 @@ import numba
 import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros  # numba's count of trailing zero bits (tzcnt); numba is pinned
 
-from cmc.plane_sampling import INTERPOLATIONS, cubic_weights
+from cmc.plane_sampling import INTERPOLATIONS, check_interpolation, cubic_weights
 
 TILE_SHIFT = 3
 TILE = 1 << TILE_SHIFT  # texels per occupancy tile side
@@ -509,8 +509,7 @@ def render(
         Q[j], ax[j, :D], bx[j, :D], ay[j, :D], by[j, :D], e[j, :D], split[j] = _plane_params(
             mpis[i], int(h), int(w), K_tgt, world_from_tgt
         )
-    if colour_interpolation not in INTERPOLATIONS:
-        raise ValueError(f"colour_interpolation must be 'bilinear' or 'bicubic', got {colour_interpolation!r}")
+    check_interpolation(colour_interpolation, "colour_interpolation")
     cubic = colour_interpolation == "bicubic"
     w_use = np.asarray(weights, np.float64)[use_a]
     rgb = np.empty((height, width, 3), np.float32)
