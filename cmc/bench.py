@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import os
 import platform
 import resource
 import statistics
@@ -33,7 +34,9 @@ METRICS = ("psnr", "ssim", "lpips_alex", "lpips_vgg")
 
 
 def git_commit() -> str:
-    """The repository's HEAD commit (with '+dirty' for uncommitted changes), or 'unknown'."""
+    """The repository's HEAD commit (with '+dirty' for uncommitted changes); where there is no
+    git repository (a copy of the tree on another machine, an image) ``$CMC_GIT_COMMIT``, else
+    'unknown'."""
     here = Path(__file__).resolve().parent
     try:
         sha = subprocess.run(
@@ -48,7 +51,7 @@ def git_commit() -> str:
         ).stdout.strip()
         return sha + ("+dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+        return os.environ.get("CMC_GIT_COMMIT", "unknown")
 
 
 def peak_memory_mb(device: torch.device) -> float:
