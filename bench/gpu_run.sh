@@ -14,7 +14,7 @@ budget=${1:-540}
 start=$(date +%s)
 left() { echo $((budget - ($(date +%s) - start))); }
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 CMC_LPIPS_DIR=$PWD/.gpudata/weights
-export CMC_GIT_COMMIT=${GIT_COMMIT:-unknown}
+export CMC_GIT_COMMIT=${GIT_COMMIT:-unknown} TQDM_DISABLE=1
 OUT=${OUT:-/tmp/gpu_out}
 mkdir -p "$OUT"
 {
@@ -28,7 +28,7 @@ timeout 150 python3 -m pytest -q --noconftest -p no:cacheprovider tests/test_cud
 
 echo "== fern, fast, cuda ($(left) s left)"
 timeout 200 python3 -m cmc.cli bench llff --data .gpudata/llff --scenes fern --preset fast --device cuda \
-  --out "$OUT/fern_fast_cuda.json" 2>&1 | grep -v '|.*it/s\]$' | tail -n 20
+  --out "$OUT/fern_fast_cuda.json" 2>&1 | tail -n 20
 
 echo "== paper preset: step time ($(left) s left)"
 python3 - "$(left)" "$OUT/paper_steps.txt" <<'EOF' 2>&1 | tail -n 20
@@ -64,6 +64,6 @@ steps=$(awk '{print $4}' "$OUT/paper_steps.txt" 2>/dev/null)
 if [ -n "$steps" ] && [ "$steps" -gt 0 ]; then
   echo "== fern, paper ($steps steps), cuda ($(left) s left)"
   timeout $(( $(left) - 10 )) python3 -m cmc.cli bench llff --data .gpudata/llff --scenes fern --preset paper \
-    --device cuda --set steps="$steps" --out "$OUT/fern_paper_cuda.json" 2>&1 | grep -v '|.*it/s\]$' | tail -n 20
+    --device cuda --set steps="$steps" --out "$OUT/fern_paper_cuda.json" 2>&1 | tail -n 20
 fi
 echo "== done ($(left) s left)"
