@@ -8,9 +8,12 @@
 # The data travel in .gpudata/ (ignored; ../shared stays behind): fern's images_8 and
 # poses_bounds.npy, lpips_alex.pth, and lpips_vgg.pth in float16 (the tree may carry 64 MiB;
 # float16 weights move LPIPS-vgg of the reference pairs by at most 2.4e-5).
-# Usage: GIT_COMMIT=$(git rev-parse --short HEAD) bash bench/gpu_run.sh [SECONDS]
+# Usage: GIT_COMMIT=$(git rev-parse --short HEAD) bash bench/gpu_run.sh [SECONDS [STAGE...]]
+# with STAGE tests, fast or paper (default: all three, in that order).
 set -u
 budget=${1:-540}
+shift
+stages=" ${*:-tests fast paper} "
 start=$(date +%s)
 left() { echo $((budget - ($(date +%s) - start))); }
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 CMC_LPIPS_DIR=$PWD/.gpudata/weights
@@ -23,13 +26,18 @@ mkdir -p "$OUT"
   nproc
 } 2>&1 | tee "$OUT/env.txt"
 
+if [[ $stages == *" tests "* ]]; then
 echo "== tests/test_cuda.py ($(left) s left)"
 timeout 150 python3 -m pytest -q --noconftest -p no:cacheprovider tests/test_cuda.py 2>&1 | tail -n 30 | tee "$OUT/test_cuda.txt"
+fi
 
+if [[ $stages == *" fast "* ]]; then
 echo "== fern, fast, cuda ($(left) s left)"
 timeout 200 python3 -m cmc.cli bench llff --data .gpudata/llff --scenes fern --preset fast --device cuda \
   --out "$OUT/fern_fast_cuda.json" 2>&1 | tail -n 20
+fi
 
+if [[ $stages == *" paper "* ]]; then
 echo "== paper preset: step time ($(left) s left)"
 python3 - "$(left)" "$OUT/paper_steps.txt" <<'EOF' 2>&1 | tail -n 20
 import sys, time
@@ -65,5 +73,6 @@ if [ -n "$steps" ] && [ "$steps" -gt 0 ]; then
   echo "== fern, paper ($steps steps), cuda ($(left) s left)"
   timeout $(( $(left) - 10 )) python3 -m cmc.cli bench llff --data .gpudata/llff --scenes fern --preset paper \
     --device cuda --set steps="$steps" --out "$OUT/fern_paper_cuda.json" 2>&1 | tail -n 20
+fi
 fi
 echo "== done ($(left) s left)"

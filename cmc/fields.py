@@ -183,11 +183,11 @@ class PyramidPlaneField(MPIField):
         base = torch.logit(base.clamp(0.02, 0.98)).expand(cfg.base_groups, -1, -1, -1)
         self.base = nn.Parameter(base.contiguous())  # [G, 3, h, w]
         # Initial alpha 1 / (D - k), held by the coarsest level: every plane contributes equally.
-        k = torch.arange(num_planes, dtype=torch.float32)
+        k = torch.arange(num_planes, dtype=torch.float32, device=rgb.device)
         alpha0 = torch.logit((1.0 / (num_planes - k)).clamp(max=0.99))
         self.levels = nn.ParameterList()
         for n, s in enumerate(cfg.scales):
-            lvl = torch.zeros(num_planes, 4, *size(s))
+            lvl = torch.zeros(num_planes, 4, *size(s), device=rgb.device)
             if init_alpha is not None and n == 0:
                 a = F.interpolate(init_alpha[:, None].float(), size=size(s), mode="bilinear", align_corners=False)
                 lvl[:, 3] = torch.logit(a[:, 0].clamp(0.01, 0.99))

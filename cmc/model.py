@@ -50,10 +50,11 @@ def hidden_layer_colours(rgb: torch.Tensor, front: torch.Tensor, num_planes: int
 
 def padded_reference(image: np.ndarray, frame: MPIFrame) -> torch.Tensor:
     """[3, h, w] the reference photo resampled onto the plane extent, edge-extended into the
-    margin (the initial colour of a pyramid field)."""
-    img = torch.as_tensor(image, dtype=torch.float32).permute(2, 0, 1)[None]
+    margin (the initial colour of a pyramid field), on the frame's device."""
+    dev = frame.K.device
+    img = torch.as_tensor(image, dtype=torch.float32, device=dev).permute(2, 0, 1)[None]
     h, w = frame.extent
-    grid = texel_grid(h, w)[None] * frame.margin  # plane grid -> image grid coordinates
+    grid = texel_grid(h, w, dev)[None] * frame.margin  # plane grid -> image grid coordinates
     return F.grid_sample(img, grid, align_corners=False, padding_mode="border")[0]
 
 
