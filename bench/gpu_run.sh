@@ -17,7 +17,7 @@ stages=" ${*:-tests fast paper} "
 start=$(date +%s)
 left() { echo $((budget - ($(date +%s) - start))); }
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 CMC_LPIPS_DIR=$PWD/.gpudata/weights
-export CMC_GIT_COMMIT=${GIT_COMMIT:-unknown} TQDM_DISABLE=1
+export CMC_GIT_COMMIT=${GIT_COMMIT:-} TQDM_DISABLE=1
 OUT=${OUT:-/tmp/gpu_out}
 mkdir -p "$OUT"
 {

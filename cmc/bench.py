@@ -34,9 +34,11 @@ METRICS = ("psnr", "ssim", "lpips_alex", "lpips_vgg")
 
 
 def git_commit() -> str:
-    """The repository's HEAD commit (with '+dirty' for uncommitted changes); where there is no
-    git repository (a copy of the tree on another machine, an image) ``$CMC_GIT_COMMIT``, else
-    'unknown'."""
+    """``$CMC_GIT_COMMIT`` where set (a copy of the tree on another machine, whose git
+    repository, if any, may be stale), else the repository's HEAD commit (with '+dirty' for
+    uncommitted changes), else 'unknown'."""
+    if os.environ.get("CMC_GIT_COMMIT"):
+        return os.environ["CMC_GIT_COMMIT"]
     here = Path(__file__).resolve().parent
     try:
         sha = subprocess.run(
@@ -51,7 +53,7 @@ def git_commit() -> str:
         ).stdout.strip()
         return sha + ("+dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
-        return os.environ.get("CMC_GIT_COMMIT", "unknown")
+        return "unknown"
 
 
 def peak_memory_mb(device: torch.device) -> float:
