@@ -23,6 +23,42 @@ def plane_depths(near: float, far: float, num_planes: int) -> np.ndarray:
     return 1.0 / np.linspace(1.0 / near, 1.0 / far, num_planes)
 
 
+def content_plane_depths(near: float, far: float, density: np.ndarray, floor: float) -> np.ndarray:
+    """[D] plane depths from ``near`` (index 0) to ``far`` (index D-1), spaced in disparity so that
+    the planes crowd where the scene's surfaces are.
+
+    ``density`` [D] is how much of the scene lies at each plane of :func:`plane_depths` (any
+    non-negative weights, e.g. plane-sweep probabilities summed over texels), spread evenly over
+    the disparity interval nearest that plane. The planes follow the cube root of that density:
+    the point density that minimises the mean squared distance, in disparity, from a surface to
+    its nearest plane (Panter and Dite's companding law), so a large flat wall gets a few planes
+    more, not all of them. Plane k of the result sits at the k / (D - 1) quantile of the mixture
+    ``floor`` x uniform + ``(1 - floor)`` x that cube-root density. ``floor`` in (0, 1] bounds
+    the spacing: no gap exceeds 1 / floor times the uniform spacing (``floor = 1``:
+    :func:`plane_depths`). Nearest and farthest stay ``near`` and ``far``.
+    """
+    density = np.asarray(density, dtype=np.float64)
+    D = len(density)
+    if not 0 < floor <= 1:
+        raise ValueError(f"plane density floor must be in (0, 1], got {floor}")
+    uniform = plane_depths(near, far, D)
+    total = density.sum()
+    if not np.all(np.isfinite(density)) or np.any(density < 0) or total <= 0:
+        raise ValueError("plane density must be finite, non-negative and not all zero")
+    # Position t in [0, 1] along the disparity range (0 = near); uniform plane k at k / (D - 1)
+    # owns the interval of t nearest it.
+    edges = np.concatenate([[0.0], (np.arange(D - 1) + 0.5) / (D - 1), [1.0]])
+    width = np.diff(edges)
+    companded = np.cbrt(density / total / width) * width
+    mass = floor * width + (1 - floor) * companded / companded.sum()
+    cdf = np.concatenate([[0.0], np.cumsum(mass)])
+    t = np.interp(np.linspace(0.0, 1.0, D), cdf / cdf[-1], edges)
+    disparity = 1.0 / near + t * (1.0 / far - 1.0 / near)
+    depths = 1.0 / disparity
+    depths[0], depths[-1] = uniform[0], uniform[-1]
+    return depths
+
+
 def homographies_ref_from_tgt(
     K_ref: torch.Tensor,
     ref_from_world: torch.Tensor,

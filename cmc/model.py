@@ -12,7 +12,7 @@ from torch import nn
 from cmc.config import ModelConfig
 from cmc.datasets import Scene
 from cmc.fields import MLPField, MPIField, PyramidPlaneField, plane_group_bounds
-from cmc.geometry import texel_grid
+from cmc.geometry import content_plane_depths, texel_grid
 from cmc.planesweep import affordable_supersample, alpha_from_weights, layered_alpha, plane_sweep_weights
 from cmc.rendering import ImageOutput, MPIFrame, render_image
 
@@ -58,6 +58,34 @@ def padded_reference(image: np.ndarray, frame: MPIFrame) -> torch.Tensor:
     return F.grid_sample(img, grid, align_corners=False, padding_mode="border")[0]
 
 
+def content_density(frames: list[MPIFrame], images: torch.Tensor, cfg: ModelConfig) -> np.ndarray:
+    """[D] how much of the scene lies at each plane of ``frames`` (the same planes in every
+    frame): per view, the plane-sweep probabilities (:func:`plane_sweep_weights` with the pyramid
+    field's stereo settings, on alpha's finest grid, not supersampled) summed over the texels
+    inside the reference photo; the mean over views of each view's shares. images: [N, 3, H, W]."""
+    p = cfg.pyramid
+    shares = []
+    for i, fr in enumerate(frames):
+        h, w = (max(2, round(e * p.scales[0])) for e in fr.extent)
+        probs = plane_sweep_weights(
+            frames,
+            images,
+            i,
+            h,
+            w,
+            p.stereo_temperature,
+            occlusion_aware=p.stereo_occlusion_aware,
+            edge_sigma=p.stereo_edge_sigma or None,
+            extend_border=p.stereo_extend_border,
+            cost=p.stereo_cost,
+            smoothness=tuple(p.stereo_smoothness),
+        )
+        inside = (texel_grid(h, w, probs.device).abs() <= 1 / fr.margin).all(-1)
+        per_plane = probs[:, inside].sum(1).double()
+        shares.append((per_plane / per_plane.sum()).cpu().numpy())
+    return np.mean(shares, 0)
+
+
 class CMCModel(nn.Module):
     """Per-view MPIs for the N views of a scene.
 
@@ -77,22 +105,30 @@ class CMCModel(nn.Module):
         self.near, self.far = scene.near, scene.far
         cams = scene.cameras
         self.width, self.height = cams.width, cams.height
-        self.frames = [
-            MPIFrame.create(
-                cams.K[i],
-                cams.world_from_cam[i],
-                self.near,
-                self.far,
-                cfg.num_planes,
-                cams.width,
-                cams.height,
-                cfg.margin,
-                device,
-            )
-            for i in range(len(scene))
-        ]
-        fields: list[MPIField] = []
         images = torch.as_tensor(scene.images, device=device).permute(0, 3, 1, 2)
+
+        def frames(depths: np.ndarray | None = None) -> list[MPIFrame]:
+            return [
+                MPIFrame.create(
+                    cams.K[i],
+                    cams.world_from_cam[i],
+                    self.near,
+                    self.far,
+                    cfg.num_planes,
+                    cams.width,
+                    cams.height,
+                    cfg.margin,
+                    device,
+                    depths,
+                )
+                for i in range(len(scene))
+            ]
+
+        self.frames = frames()
+        if cfg.plane_density_floor < 1:
+            density = content_density(self.frames, images, cfg)
+            self.frames = frames(content_plane_depths(self.near, self.far, density, cfg.plane_density_floor))
+        fields: list[MPIField] = []
         for i, fr in enumerate(self.frames):
             if cfg.field_type == "mlp":
                 fields.append(MLPField(cfg.num_planes, cfg.mlp))

@@ -38,7 +38,8 @@ class MPIFrame:
 
     Attributes:
         K: [3, 3] reference intrinsics (pixels); world_from_ref: [4, 4] (OpenCV axes).
-        depths: [D] plane depths in the reference camera, nearest first (uniform in disparity).
+        depths: [D] plane depths in the reference camera, nearest first (uniform in disparity,
+            or crowded where the scene's surfaces are: :func:`cmc.geometry.content_plane_depths`).
         width, height: reference image size in pixels.
         margin: the planes extend ``margin`` times the image's size about its centre, so that
             target views looking past the reference image's border still see plane content.
@@ -62,8 +63,13 @@ class MPIFrame:
         height: int,
         margin: float,
         device: torch.device | str = "cpu",
+        depths: np.ndarray | None = None,
     ) -> MPIFrame:
-        d = plane_depths(near, far, num_planes)
+        """``depths`` [num_planes], nearest first, from ``near`` to ``far``: the planes (default
+        uniform in disparity, :func:`cmc.geometry.plane_depths`)."""
+        d = plane_depths(near, far, num_planes) if depths is None else np.asarray(depths)
+        if len(d) != num_planes:
+            raise ValueError(f"{len(d)} plane depths given for {num_planes} planes")
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device)  # noqa: E731
         return MPIFrame(t(K), t(world_from_ref), t(d), width, height, margin)
 

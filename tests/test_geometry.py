@@ -14,6 +14,7 @@ from cmc.cameras import intrinsics
 from cmc.geometry import (
     apply_homography,
     blend_weights,
+    content_plane_depths,
     homographies_ref_from_tgt,
     mean_baseline,
     pixel_centers,
@@ -74,6 +75,63 @@ def test_plane_depths_uniform_in_disparity() -> None:
 def test_plane_depths_rejects(near: float, far: float, n: int, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         plane_depths(near, far, n)
+
+
+def _cells(D: int) -> np.ndarray:
+    """Width of the disparity interval nearest each of D uniform planes (ends half as wide)."""
+    return np.diff(np.concatenate([[0.0], (np.arange(D - 1) + 0.5) / (D - 1), [1.0]]))
+
+
+def test_content_plane_depths_follow_the_scene() -> None:
+    near, far, D = 1.0, 10.0, 12
+    uniform = plane_depths(near, far, D)
+    # Surfaces spread evenly in disparity (each plane's share its interval): the uniform planes.
+    np.testing.assert_allclose(content_plane_depths(near, far, _cells(D), 0.25), uniform, rtol=1e-12)
+    # floor 1: uniform whatever the scene
+    peaked = np.full(D, 1e-3)
+    peaked[4] = 1.0
+    np.testing.assert_allclose(content_plane_depths(near, far, peaked, 1.0), uniform, rtol=1e-12)
+    for floor in (0.5, 0.25):
+        d = content_plane_depths(near, far, peaked, floor)
+        assert d[0] == near and d[-1] == far and (np.diff(d) > 0).all()
+        spacing = np.diff(1 / d) / np.diff(1 / uniform)  # relative to the uniform spacing
+        # crowded about the surface at uniform plane 4 (disparity interval [3.5, 4.5] / 11) ...
+        t = (1 / d - 1 / near) / (1 / far - 1 / near) * (D - 1)
+        assert ((t > 3.5) & (t < 4.5)).sum() >= 3
+        assert spacing.min() < 0.5
+        # ... and nowhere sparser than 1 / floor times the uniform spacing
+        assert spacing.max() <= 1 / floor + 1e-9
+
+
+def test_content_plane_depths_bring_surfaces_nearer_a_plane() -> None:
+    """The claim of the cube-root law: surfaces, on average, lie nearer their nearest plane."""
+    near, far, D = 1.5, 12.0, 16
+    rng = np.random.default_rng(0)
+    surfaces = np.concatenate([rng.uniform(2.0, 2.6, 300), rng.uniform(5.0, 6.0, 600), [11.0] * 100])
+    disp = lambda z: (1 / np.asarray(z) - 1 / near) / (1 / far - 1 / near)  # noqa: E731
+
+    def rms_to_nearest_plane(depths: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(np.min(np.abs(disp(surfaces)[:, None] - disp(depths)[None]), 1) ** 2)))
+
+    # the density a plane sweep would report: each surface counted at its nearest uniform plane
+    counts = np.bincount(np.abs(disp(surfaces)[:, None] - np.linspace(0, 1, D)).argmin(1), minlength=D)
+    uniform = rms_to_nearest_plane(plane_depths(near, far, D))
+    assert rms_to_nearest_plane(content_plane_depths(near, far, counts + 1e-3, 0.25)) < 0.7 * uniform
+
+
+@pytest.mark.parametrize(
+    ("density", "floor", "message"),
+    [
+        (np.ones(4), 0.0, "floor"),
+        (np.ones(4), 1.5, "floor"),
+        (np.zeros(4), 0.5, "not all zero"),
+        (np.array([1.0, -1.0, 1.0, 1.0]), 0.5, "non-negative"),
+        (np.array([1.0, np.nan, 1.0, 1.0]), 0.5, "finite"),
+    ],
+)
+def test_content_plane_depths_rejects(density: np.ndarray, floor: float, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        content_plane_depths(1.0, 5.0, density, floor)
 
 
 # --- homographies ----------------------------------------------------------------------------------
