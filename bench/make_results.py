@@ -149,11 +149,24 @@ NOW_LABEL = (
     "halfway +0.04 dB, near +0.02 dB (`slanted` near -0.43), LPIPS-vgg and depth error better in every group; "
     "no serving cost)"
 )
-# What the bakes of fern_every_view.json are (the two fern runs of the latest adoption).
-EVERY_VIEW_BAKES = {
-    "previous": "the previous `fast`, the 2x sweep grid without semi-global aggregation (`view_quality_fern_ss2`)",
-    "now": "`fast` now, with semi-global aggregation (`view_quality_fern_sgmt2`)",
-}
+# The reports of bench/fern_every_view.py, oldest first, and what their bakes are (the fern runs of
+# an adoption: the preset before and after it).
+EVERY_VIEW = [
+    (
+        "fern_every_view.json",
+        {
+            "previous": "the `fast` of the 2x sweep grid without semi-global aggregation (`view_quality_fern_ss2`)",
+            "now": "with semi-global aggregation (`view_quality_fern_sgmt2`)",
+        },
+    ),
+    (
+        "fern_every_view_planes.json",
+        {
+            "previous": "the `fast` of a base colour per 6 planes (`view_quality_fern_rerun_groups8`)",
+            "now": "`fast` now, planes spaced by content (`view_quality_fern_adaptive`)",
+        },
+    ),
+]
 BG4_LABEL = "the previous `fast`: + a base colour per group of 12 planes (`model.pyramid.base_groups=4`)"
 ENTROPY_LABEL = "the previous `fast`: + alpha entropy prior 0.01 (`cmc.losses.alpha_entropy`)"
 S600_CUBIC_LABEL = (
@@ -1200,24 +1213,28 @@ def main() -> None:
         "```",
         "",
     ]
-    every = load("fern_every_view.json")
-    if every:
+    reports = [(load(name), bakes) for name, bakes in EVERY_VIEW]
+    reports = [(r, bakes) for r, bakes in reports if r]
+    for n, (every, bakes) in enumerate(reports):
         labels = list(every["bakes"])
         first = every["bakes"][labels[0]]
         novel = [r for r in first["views"] if r["kind"] != "input"]
         outside = [str(r["view"]) for r in novel if not r["inside_input_triangle"]]
         within = [str(r["view"]) for r in novel if r["inside_input_triangle"]]
         far = max(r["baselines_to_nearest_input"] for r in novel)
+        if n == 0:
+            out += [
+                "## LLFF fern at every pose, by distance from the inputs (issue 14)\n",
+                "The protocol's inputs (views 1, 10, 19) all sit at the left end of fern's two-row capture: of "
+                f"the other {len(outside) + len(within)} poses, {len(outside)} lie outside the inputs' triangle (all "
+                f"but {', '.join(within)}), up to {far:.1f} input baselines from the nearest input. "
+                "`bench/fern_every_view.py` renders every pose from a bake and scores it "
+                "against its photo, grouped by the distance from its camera centre to the nearest input's, in mean "
+                "input baselines. Nothing is trained or chosen on these views; they are reported only.\n",
+            ]
         out += [
-            "## LLFF fern at every pose, by distance from the inputs (issue 14)\n",
-            "The protocol's inputs (views 1, 10, 19) all sit at the left end of fern's two-row capture: of "
-            f"the other {len(outside) + len(within)} poses, {len(outside)} lie outside the inputs' triangle (all but "
-            f"{', '.join(within)}), up to {far:.1f} input baselines from the nearest input. "
-            "`bench/fern_every_view.py` renders every pose from a bake and scores it "
-            "against its photo, grouped by the distance from its camera centre to the nearest input's, in mean "
-            "input baselines. Nothing is trained or chosen on these views; they are reported only.\n",
             f"Command: `{every['command']}` (the bakes of the fern runs of the view-quality section: "
-            + ", ".join(f"{lab} = {EVERY_VIEW_BAKES.get(lab, lab)}" for lab in labels)
+            + ", ".join(f"{lab} = {bakes.get(lab, lab)}" for lab in labels)
             + f").  \nMachine: the same 2-core CPU box. Date: {every['date']}; git commit {every['git_commit']}.\n",
             "| distance (baselines) | views | "
             + " | ".join(f"{lab}: PSNR / SSIM / LPIPS-vgg" for lab in labels)
@@ -1232,9 +1249,11 @@ def main() -> None:
                 + " | ".join(f"{c['psnr']:.2f} / {c['ssim']:.3f} / {c['lpips_vgg']:.3f}" for c in cells)
                 + " |"
             )
+        out.append("")
+        if n < len(reports) - 1:
+            continue
         out += [
-            "",
-            f"Per view ({labels[-1]}; * = protocol test view):\n",
+            f"Per view ({labels[-1]} of the last table; * = protocol test view):\n",
             "| view | baselines | inside the inputs' triangle | PSNR | SSIM | LPIPS-vgg |",
         ]
         out.append("|---|---|---|---|---|---|")
