@@ -138,7 +138,7 @@ def bake(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     mpis = []
-    for i, (mpi_field, frame) in enumerate(zip(model.fields, model.frames, strict=True)):
+    for i, (mpi_field, frame) in enumerate(zip(model.display_fields(), model.frames, strict=True)):
         h, w = (max(2, round(s * scale)) for s in frame.extent)
         rgba, depths = merge_planes(bake_textures(mpi_field, frame, (h, w)), frame.depths, merge)  # type: ignore[arg-type]
         D = rgba.shape[0]

@@ -134,6 +134,16 @@ ABLATIONS = {
 }
 
 
+def _input_gains(text: str) -> list[float]:
+    try:
+        gains = [float(g) for g in text.split(",")]
+    except ValueError:
+        gains = []
+    if len(gains) != 3 or not all(0 < g < 10 for g in gains):
+        raise ConfigError(f"--input-gains needs three factors between 0 and 10, e.g. 1,1.15,0.87; got {text!r}")
+    return gains
+
+
 def cmd_bench(args: argparse.Namespace) -> None:
     from cmc.bench import run_llff_bench, run_synthetic_bench, write_report
 
@@ -143,6 +153,9 @@ def cmd_bench(args: argparse.Namespace) -> None:
     if not lpips_dir:
         raise ConfigError("LPIPS weights needed: pass --lpips-weights DIR or set CMC_LPIPS_DIR")
     device = _device(args.device)
+    gains = _input_gains(args.input_gains) if args.input_gains else None
+    if gains is not None and args.dataset != "synthetic":
+        raise ConfigError("--input-gains is for the synthetic benchmark")
     base = _config(args)
     variants = {"": base}
     if args.ablation:
@@ -161,7 +174,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
             report = run_llff_bench(Path(args.data), scenes, cfg, device, lpips_dir, save, hook)
         else:
             scenes = args.scenes.split(",") if args.scenes else list(WIDE_SCENES)
-            report = run_synthetic_bench(scenes, cfg, device, lpips_dir, save, hook)
+            report = run_synthetic_bench(scenes, cfg, device, lpips_dir, save, hook, input_gains=gains)
         for b in bar.values():
             b.close()
         if suffix:
@@ -281,6 +294,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--lpips-weights", help="folder with lpips_alex.pth and lpips_vgg.pth (or CMC_LPIPS_DIR)")
     b.add_argument("--save-dir", help="also keep baked MPIs and test renders here")
     b.add_argument("--ablation", action="store_true", help="run the paper's loss ablation (4 runs)")
+    b.add_argument(
+        "--input-gains",
+        help="synthetic: comma-separated factors on the three input photos' colours (per-shot exposure, "
+        "as phones set it; the test views keep theirs), e.g. 1,1.15,0.87",
+    )
     train_opts(b)
     b.add_argument(
         "--set",

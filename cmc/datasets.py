@@ -57,6 +57,15 @@ class Scene:
         depths = None if self.depths is None else self.depths[idx]
         return Scene(self.images[idx], self.cameras[idx], self.near_far[idx], [self.names[i] for i in idx], depths)
 
+    def with_gains(self, gains: list[float]) -> Scene:
+        """The same views with view k's colours times ``gains[k]``, clipped to [0, 1] (photos of
+        differing exposure)."""
+        if len(gains) != len(self):
+            raise SceneError(f"{len(gains)} gains for {len(self)} views")
+        factor = np.asarray(gains, dtype=np.float32)[:, None, None, None]
+        images = np.clip(self.images * factor, 0, 1).astype(np.float32)
+        return Scene(images, self.cameras, self.near_far, self.names, self.depths)
+
     @property
     def near(self) -> float:
         return float(self.near_far[:, 0].min())

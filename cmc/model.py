@@ -11,6 +11,7 @@ from torch import nn
 
 from cmc.config import ModelConfig
 from cmc.datasets import Scene
+from cmc.errors import ConfigError
 from cmc.fields import MLPField, MPIField, PyramidPlaneField, plane_group_bounds
 from cmc.geometry import content_plane_depths, texel_grid
 from cmc.planesweep import affordable_supersample, alpha_from_weights, layered_alpha, plane_sweep_weights
@@ -86,12 +87,53 @@ def content_density(frames: list[MPIFrame], images: torch.Tensor, cfg: ModelConf
     return np.mean(shares, 0)
 
 
+class ExposureResponse(nn.Module):
+    """How each of N input photos renders colour, relative to one shared response: photo v shows
+    a colour c (RGB in [0, 1], per channel) as ``exp(log_gain[v]) * c + offset[v]``. Phones set
+    exposure and white balance per shot; MPI i holds colours in photo i's response, and
+    :meth:`convert` takes them into photo j's before they are compared with photo j, so that the
+    difference of the two photos' responses is not explained by geometry. Starts as the identity;
+    only differences between views matter (a change shared by all views converts to nothing)."""
+
+    def __init__(self, num_views: int):
+        super().__init__()
+        self.log_gain = nn.Parameter(torch.zeros(num_views, 3))
+        self.offset = nn.Parameter(torch.zeros(num_views, 3))
+
+    def convert(self, rgb: torch.Tensor, src: int, dst: int | None) -> torch.Tensor:
+        """Colours [..., 3] in photo ``src``'s response -> photo ``dst``'s (unchanged when equal),
+        or with ``dst`` None into the mean of the photos' responses (what renders show)."""
+        if src == dst:
+            return rgb
+        shared = (rgb - self.offset[src]) * torch.exp(-self.log_gain[src])
+        if dst is None:
+            return shared * torch.exp(self.log_gain.mean(0)) + self.offset.mean(0)
+        return shared * torch.exp(self.log_gain[dst]) + self.offset[dst]
+
+
+class MeanResponseField(MPIField):
+    """MPI ``view``'s field with its colours taken from its photo's response into the mean of
+    the input photos' (:meth:`ExposureResponse.convert` with ``dst=None``), clipped to [0, 1]:
+    every MPI of a render or a bake then shows one exposure and white balance."""
+
+    def __init__(self, field: MPIField, exposure: ExposureResponse, view: int):
+        super().__init__()
+        self.field, self.exposure, self.view = field, exposure, view
+        self.num_planes, self.colour_interpolation = field.num_planes, field.colour_interpolation
+
+    def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
+        rgb, alpha = self.field(g, plane_z, dirs)
+        return self.exposure.convert(rgb, self.view, None).clamp(0, 1), alpha
+
+
 class CMCModel(nn.Module):
     """Per-view MPIs for the N views of a scene.
 
     Attributes:
         frames: N :class:`MPIFrame` (reference camera and plane depths of each MPI).
         fields: N fields (``nn.ModuleList``).
+        exposure: the input photos' colour responses (:class:`ExposureResponse`), or None;
+            renders and bakes show every MPI in their mean (:meth:`display_fields`).
         near, far: the plane range (scene units) shared by all MPIs.
     """
 
@@ -125,6 +167,8 @@ class CMCModel(nn.Module):
             ]
 
         self.frames = frames()
+        if not 0 < cfg.plane_density_floor <= 1:
+            raise ConfigError(f"model.plane_density_floor must be in (0, 1], got {cfg.plane_density_floor}")
         if cfg.plane_density_floor < 1:
             density = content_density(self.frames, images, cfg)
             self.frames = frames(content_plane_depths(self.near, self.far, density, cfg.plane_density_floor))
@@ -167,6 +211,7 @@ class CMCModel(nn.Module):
             else:
                 raise ValueError(f"unknown field type {cfg.field_type!r}")
         self.fields = nn.ModuleList(fields).to(device)
+        self.exposure = ExposureResponse(len(scene)).to(device) if cfg.exposure_compensation else None
 
     def render(
         self,
@@ -177,7 +222,16 @@ class CMCModel(nn.Module):
         mpi_index: int | None = None,
         min_weight: float = 0.0,
     ) -> ImageOutput:
-        """Render colour and depth for any camera (see :func:`cmc.rendering.render_image`)."""
+        """Render colour and depth for any camera (see :func:`cmc.rendering.render_image`), every
+        MPI in the mean of the photos' colour responses (:meth:`display_fields`)."""
         return render_image(
-            list(self.fields), self.frames, K, world_from_cam, width, height, mpi_index, min_weight=min_weight
+            self.display_fields(), self.frames, K, world_from_cam, width, height, mpi_index, min_weight=min_weight
         )  # type: ignore[arg-type]
+
+    def display_fields(self) -> list[MPIField]:
+        """The fields as renders and bakes show them: as trained, or, with exposure compensation,
+        each in the mean of the photos' colour responses (:class:`MeanResponseField`)."""
+        fields: list[MPIField] = list(self.fields)  # type: ignore[arg-type]
+        if self.exposure is None:
+            return fields
+        return [MeanResponseField(f, self.exposure, i) for i, f in enumerate(fields)]

@@ -16,7 +16,7 @@ import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -152,6 +152,10 @@ class Trainer:
         by_target = list(zip(*per_mpi, strict=True))
         n = len(self.scene)
         zero = torch.zeros((), device=self.device)
+        exposure = self.model.exposure
+        if exposure is not None:  # MPI i's colours in photo j's response before they meet photo j
+            for j in range(n):
+                by_target[j] = [replace(o, rgb=exposure.convert(o.rgb, i, j)) for i, o in enumerate(by_target[j])]
         losses = {"mse": torch.stack([reconstruction_loss(by_target[j], targets[j]) for j in range(n)]).mean()}
         if lc.depth_consistency == "cauchy":
             scale = 1.0 / (self.model.cfg.num_planes - 1)

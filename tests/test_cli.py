@@ -95,6 +95,21 @@ def test_bench_needs_lpips_weights(tmp_path, capsys, monkeypatch):
     _expect_error(["bench", "llff", "--data", str(tmp_path), "--out", str(tmp_path / "r.json")], capsys, "LPIPS")
 
 
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["synthetic", "--input-gains", "1,2"], "three factors"),
+        (["synthetic", "--input-gains", "1,x,1"], "three factors"),
+        (["synthetic", "--input-gains", "1,0,1"], "three factors"),
+        (["llff", "--data", ".", "--input-gains", "1,1,1"], "for the synthetic benchmark"),
+        (["synthetic", "--scenes", "cards", "--set", "model.plane_density_floor=0"], "plane_density_floor"),
+    ],
+)
+def test_bench_refuses_bad_options(tmp_path, capsys, extra, message):
+    args = ["bench", *extra, "--out", str(tmp_path / "r.json"), "--lpips-weights", str(tmp_path)]
+    _expect_error(args, capsys, message)
+
+
 def test_demo_runs_end_to_end(tmp_path):
     from cmc.demo import run_demo
 
