@@ -52,10 +52,10 @@ FERN_CMD = (
 # (model.pyramid.stereo_smoothness), on the 2x sweep grid (model.pyramid.stereo_supersample),
 # trained with the compiled texture sampler (cmc.plane_sampling), base colours bicubic
 # (model.pyramid.base_interpolation).
-FERN_AFTER = "view_quality_fern_adaptive.json"
-SYN_AFTER = "view_quality_synthetic_adaptive.json"
-FERN_AFTER_FLAGS = " --set model.plane_density_floor=0.25  (before that became the default)"
-SYN_AFTER_FLAGS = " --set model.plane_density_floor=0.25  (before that became the default)"
+FERN_AFTER = "view_quality_fern_exposure.json"
+SYN_AFTER = "view_quality_synthetic_exposure.json"
+FERN_AFTER_FLAGS = " --set model.exposure_compensation=true  (before that became the default)"
+SYN_AFTER_FLAGS = " --set model.exposure_compensation=true  (before that became the default)"
 AFTER_NOTE = (
     "These runs had the CPU to themselves, on two threads; most earlier rows of the table below ran "
     "on one thread while other work used the CPU at times, so compare train seconds within a "
@@ -66,8 +66,10 @@ AFTER_NOTE = (
     "run of the 2x sweep grid and the first semi-global row of the fern table ran from a copy of the working "
     "tree of commit 56a7df5 with the new options not yet committed, so those reports could not read their "
     "commit: `56a7df5+dirty` was written into them by hand (the code is that of 7b3bbda, and adc8b26 for "
-    "the semi-global row). The latest after runs (content-spaced planes) ran from the working tree of cfba004 "
-    "with the code of 8f6e622 not yet committed (its tests aside), hence `cfba004+dirty` in them.\n"
+    "the semi-global row). The runs of the content-spaced planes ran from the working tree of cfba004 "
+    "with the code of 8f6e622 not yet committed (its tests aside), hence `cfba004+dirty` in them; the after "
+    "runs (exposure compensation) from the working tree of 1f80c02 with the code of 9f19156 not yet committed "
+    "(the preset's default aside), hence `1f80c02+dirty`.\n"
 )
 # The previous `fast`: the plane sweep on a 2x grid (model.pyramid.stereo_supersample).
 SYN_PREV = "view_quality_synthetic_ss2.json"
@@ -142,12 +144,17 @@ GROUPS8_LABEL = (
     "synthetic halfway +0.01 dB, near -0.02 dB, beyond +0.04 dB, LPIPS the same; training time within the host's "
     "noise; the same change on the preset before bicubic colours measured alike)"
 )
-NOW_LABEL = (
-    "**`fast` now**: the 48 planes spaced in disparity by where a first plane sweep finds the surfaces, a quarter "
+ADAPTIVE_LABEL = (
+    "the previous `fast`: the 48 planes spaced in disparity by where a first plane sweep finds the surfaces, a quarter "
     "uniform and the rest by the cube root of the sweep's density (`model.plane_density_floor=0.25`; fern SSIM "
     "+0.003, LPIPS-vgg -0.003, LPIPS-alex +0.004, PSNR -0.04 dB, view 16 SSIM +0.008; synthetic beyond +0.37 dB, "
     "halfway +0.04 dB, near +0.02 dB (`slanted` near -0.43), LPIPS-vgg and depth error better in every group; "
     "no serving cost)"
+)
+NOW_LABEL = (
+    "**`fast` now**: each input photo's colour response learnt, renders in their mean "
+    "(`model.exposure_compensation=true`; at equal exposure the same scores: fern +0.001 SSIM, synthetic within "
+    '0.03 dB; with the inputs at colour gains 1, 1.15, 0.87: section "Photos of differing exposure")'
 )
 # The reports of bench/fern_every_view.py, oldest first, and what their bakes are (the fern runs of
 # an adoption: the preset before and after it).
@@ -433,6 +440,7 @@ FERN_STEPS = [
     ),
     ("groups8", GROUPS8_LABEL),
     ("rerun_groups8", "the previous `fast`, rerun in a later session (the same scores; the same day as the row below)"),
+    ("adaptive", ADAPTIVE_LABEL),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
@@ -557,6 +565,7 @@ VQ_ABLATION = [
     ("view_quality_synthetic_cubic_s600.json", S600_CUBIC_LABEL),
     ("view_quality_synthetic_rays8192.json", RAYS8192_LABEL),
     ("view_quality_synthetic_groups8.json", GROUPS8_LABEL),
+    ("view_quality_synthetic_adaptive.json", ADAPTIVE_LABEL),
     (SYN_AFTER, NOW_LABEL),
 ]
 
@@ -580,6 +589,7 @@ ABSENT_MEANS = {
     "model.pyramid.stereo_smoothness": [0.0, 0.0],
     "model.pyramid.base_interpolation": "bilinear",
     "model.plane_density_floor": 1.0,
+    "model.exposure_compensation": False,
 }
 
 
@@ -943,6 +953,55 @@ def gpu_section() -> list[str]:
     ]
 
 
+def exposure_section() -> list[str]:
+    """Photos of differing exposure: the synthetic set with its inputs' colours scaled."""
+    runs = [
+        ("exposure_synthetic_gains_off.json", "without exposure compensation"),
+        (
+            "exposure_synthetic_gains_own.json",
+            "with it, each MPI rendered in its own photo's response (a first build, replaced by the next row's "
+            "code before it was committed)",
+        ),
+        ("exposure_synthetic_gains_on.json", "with it, every MPI rendered in the mean response (`fast` now)"),
+    ]
+    reports = [(load(name), name, label) for name, label in runs]
+    if not all(r for r, _, _ in reports):
+        return []
+    first = reports[0][0]
+    gains = ",".join(f"{g:g}" for g in first["input_gains"])
+    rows = [
+        "| run | halfway PSNR / LPIPS-vgg / depth | near PSNR / LPIPS-vgg / depth | beyond PSNR / LPIPS-vgg / depth "
+        "| train s | commit | command |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r, name, label in reports:
+        m = r["mean"]
+        cells = [
+            f"{m[k]['psnr']:.2f} / {m[k]['lpips_vgg']:.3f} / {m[k]['depth_rel_error']:.4f}"
+            for k in ("halfway", "near", "beyond")
+        ]
+        on = "true" if r["config"]["model"]["exposure_compensation"] else "false"
+        command = (
+            f"CMC_LPIPS_DIR=../shared/weights cmc bench synthetic --input-gains {gains} "
+            f"--set model.exposure_compensation={on} --out bench/{name}"
+        )
+        rows.append(f"| {label} | {' | '.join(cells)} | {m['train_seconds']:.0f} | {r['git_commit']} | `{command}` |")
+    return [
+        "## Photos of differing exposure (synthetic set, inputs at gains " + gains + ")\n",
+        "Phones set exposure and white balance per shot. `cmc bench synthetic --input-gains` multiplies each "
+        "input photo's colours by a factor (clipped to [0, 1]); the test views keep the scene's own colours. "
+        "`model.exposure_compensation` learns each photo's colour response (gain and offset per channel) so "
+        "that an MPI meets another photo in that photo's response (`cmc.model.ExposureResponse`), and renders "
+        "and bakes show every MPI in the mean response of the photos. Depth: median relative depth error. "
+        "The first build (second row) kept each MPI in its own photo's response: the geometry was as good, but a "
+        "view near an input showed that input's exposure, 1.15 or 0.87 times the truth's.  ",
+        f"Machine: {first['device']}, the 2-core box, no GPU. Date: {first['date']}. The reports read "
+        f"{first['git_commit']}: they ran from the working tree before the exposure code was committed.\n",
+        *rows,
+        "",
+    ]
+
+
 def machine_line(r: dict) -> str:
     m = r["machine"]
     threads = f"; `OMP_NUM_THREADS={m['omp_num_threads']}`" if m.get("omp_num_threads") else ""
@@ -1132,6 +1191,7 @@ def main() -> None:
     out = ["# Benchmark results\n", "Generated by `python bench/make_results.py` from the JSON reports beside it.\n"]
     out += view_quality_section()
     out += train_step_section()
+    out += exposure_section()
     out += gpu_section()
 
     fast = load("fern_fast_cpu.json")
