@@ -129,7 +129,8 @@ def quantize_planes(rgba: torch.Tensor, alpha_floor: int = ALPHA_FLOOR) -> np.nd
 def bake(
     model: CMCModel, out_dir: str | Path, scale: float = 1.0, merge: int = 1, alpha_floor: int = ALPHA_FLOOR
 ) -> Path:
-    """Write ``model`` in the ``cmc-mpi`` format.
+    """Write ``model`` in the ``cmc-mpi`` format, each MPI as :meth:`CMCModel.display_fields`
+    shows it (in the mean of the photos' colour responses where those were learnt).
 
     ``scale`` multiplies the texel resolution; ``merge`` > 1 composites that many adjacent
     planes into one (:func:`merge_planes`) for faster rendering; alpha at or below
