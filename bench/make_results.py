@@ -1374,8 +1374,8 @@ def main() -> None:
             "bench/demo_cpu.json; the first view-quality preset's to bench/demo_cpu_before.json).  \n"
             "Machine: the same 2-core CPU box, no GPU, nothing else running. "
             "Date: 2026-11-25, `fast` with semi-global aggregation of the plane sweep's cost, bicubic base "
-            "colours, one per group of 6 planes, and the planes spaced by where the surfaces are, trained with "
-            "the compiled texture sampler (before: 2026-11-23, "
+            "colours, one per group of 6 planes, the planes spaced by where the surfaces are and each photo's "
+            "colour response learnt, trained with the compiled texture sampler (before: 2026-11-23, "
             "the `fast` preset of the first view-quality session).\n",
             f"- training: {demo['steps']} steps in {demo['train_seconds']:.0f} s "
             f"(before: {demo_before['train_seconds']:.0f} s)",
