@@ -7,7 +7,13 @@
 #      its 20000 steps as the time left allows (the report's config says how many ran).
 # The data travel in .gpudata/ (ignored; ../shared stays behind): fern's images_8 and
 # poses_bounds.npy, lpips_alex.pth, and lpips_vgg.pth in float16 (the tree may carry 64 MiB;
-# float16 weights move LPIPS-vgg of the reference pairs by at most 2.4e-5).
+# float16 weights move LPIPS-vgg of the reference pairs by at most 2.4e-5). Made here once with
+#   mkdir -p .gpudata/llff/fern .gpudata/weights
+#   cp -r ../shared/datasets/llff/fern/images_8 ../shared/datasets/llff/fern/poses_bounds.npy .gpudata/llff/fern/
+#   cp ../shared/weights/lpips_alex.pth .gpudata/weights/
+#   .venv/bin/python -c "import torch; sd = torch.load('../shared/weights/lpips_vgg.pth'); \
+#     torch.save({k: v.half() for k, v in sd.items()}, '.gpudata/weights/lpips_vgg.pth')"
+# and carried with the device tool's `carry: [".gpudata"]`.
 # Usage: GIT_COMMIT=$(git rev-parse --short HEAD) bash bench/gpu_run.sh [SECONDS [STAGE...]]
 # with STAGE tests, fast or paper (default: all three, in that order).
 set -u
