@@ -12,7 +12,7 @@ from torch import nn
 from cmc.config import ModelConfig
 from cmc.datasets import Scene
 from cmc.errors import ConfigError
-from cmc.fields import MLPField, MPIField, PyramidPlaneField, plane_group_bounds
+from cmc.fields import MLPField, MPIField, PyramidFieldConfig, PyramidPlaneField, plane_group_bounds
 from cmc.geometry import content_plane_depths, texel_grid
 from cmc.planesweep import affordable_supersample, alpha_from_weights, layered_alpha, plane_sweep_weights
 from cmc.rendering import ImageOutput, MPIFrame, render_image
@@ -59,28 +59,38 @@ def padded_reference(image: np.ndarray, frame: MPIFrame) -> torch.Tensor:
     return F.grid_sample(img, grid, align_corners=False, padding_mode="border")[0]
 
 
+def sweep_probabilities(
+    frames: list[MPIFrame], images: torch.Tensor, ref: int, cfg: PyramidFieldConfig, supersample: bool = True
+) -> torch.Tensor:
+    """[D, h, w] the plane sweep of MPI ``ref`` (:func:`plane_sweep_weights`) with the pyramid
+    field's stereo settings, on the grid of alpha's finest level; on the finer grid those settings
+    ask for (where affordable) unless ``supersample`` is False. images: [N, 3, H, W]."""
+    h, w = (max(2, round(e * cfg.scales[0])) for e in frames[ref].extent)
+    return plane_sweep_weights(
+        frames,
+        images,
+        ref,
+        h,
+        w,
+        cfg.stereo_temperature,
+        occlusion_aware=cfg.stereo_occlusion_aware,
+        edge_sigma=cfg.stereo_edge_sigma or None,
+        extend_border=cfg.stereo_extend_border,
+        cost=cfg.stereo_cost,
+        smoothness=tuple(cfg.stereo_smoothness),
+        supersample=affordable_supersample(h, w, cfg.stereo_supersample, cfg.stereo_max_texels) if supersample else 1,
+    )
+
+
 def content_density(frames: list[MPIFrame], images: torch.Tensor, cfg: ModelConfig) -> np.ndarray:
     """[D] how much of the scene lies at each plane of ``frames`` (the same planes in every
-    frame): per view, the plane-sweep probabilities (:func:`plane_sweep_weights` with the pyramid
-    field's stereo settings, on alpha's finest grid, not supersampled) summed over the texels
-    inside the reference photo; the mean over views of each view's shares. images: [N, 3, H, W]."""
-    p = cfg.pyramid
+    frame): per view, the plane-sweep probabilities (:func:`sweep_probabilities`, not
+    supersampled) summed over the texels inside the reference photo; the mean over views of each
+    view's shares. images: [N, 3, H, W]."""
     shares = []
     for i, fr in enumerate(frames):
-        h, w = (max(2, round(e * p.scales[0])) for e in fr.extent)
-        probs = plane_sweep_weights(
-            frames,
-            images,
-            i,
-            h,
-            w,
-            p.stereo_temperature,
-            occlusion_aware=p.stereo_occlusion_aware,
-            edge_sigma=p.stereo_edge_sigma or None,
-            extend_border=p.stereo_extend_border,
-            cost=p.stereo_cost,
-            smoothness=tuple(p.stereo_smoothness),
-        )
+        probs = sweep_probabilities(frames, images, i, cfg.pyramid, supersample=False)
+        h, w = probs.shape[-2:]
         inside = (texel_grid(h, w, probs.device).abs() <= 1 / fr.margin).all(-1)
         per_plane = probs[:, inside].sum(1).double()
         shares.append((per_plane / per_plane.sum()).cpu().numpy())
@@ -179,23 +189,8 @@ class CMCModel(nn.Module):
             elif cfg.field_type == "pyramid":
                 init_alpha, rgb = None, padded_reference(scene.images[i], fr)
                 if cfg.pyramid.stereo_init:
-                    h, w = (max(2, round(e * cfg.pyramid.scales[0])) for e in fr.extent)
-                    probs = plane_sweep_weights(
-                        self.frames,
-                        images,
-                        i,
-                        h,
-                        w,
-                        cfg.pyramid.stereo_temperature,
-                        occlusion_aware=cfg.pyramid.stereo_occlusion_aware,
-                        edge_sigma=cfg.pyramid.stereo_edge_sigma or None,
-                        extend_border=cfg.pyramid.stereo_extend_border,
-                        cost=cfg.pyramid.stereo_cost,
-                        smoothness=tuple(cfg.pyramid.stereo_smoothness),
-                        supersample=affordable_supersample(
-                            h, w, cfg.pyramid.stereo_supersample, cfg.pyramid.stereo_max_texels
-                        ),
-                    )
+                    probs = sweep_probabilities(self.frames, images, i, cfg.pyramid)
+                    w = probs.shape[-1]
                     if cfg.pyramid.stereo_hidden_radius > 0:
                         radius = max(1, round(cfg.pyramid.stereo_hidden_radius * w))
                         init_alpha, front, edge = layered_alpha(probs, radius, cfg.pyramid.stereo_hidden_confidence)
