@@ -441,6 +441,22 @@ FERN_STEPS = [
     ("groups8", GROUPS8_LABEL),
     ("rerun_groups8", "the previous `fast`, rerun in a later session (the same scores; the same day as the row below)"),
     ("adaptive", ADAPTIVE_LABEL),
+    (
+        "patches16",
+        "`fast` now with half of each input view's rays drawn as 8 patches of 16x16 pixels (the sampling a patch "
+        "loss needs; the same scores: 22.91 / 0.733 / 0.164 / 0.218; the option was removed; code: commit e4b4be7)",
+    ),
+    (
+        "dssim16",
+        "... + 1 - SSIM of every MPI's render of those patches, the metric's 11-tap window, 0.1 (not adopted: "
+        "SSIM -0.021, LPIPS-vgg +0.035; the reconstruction loss stays higher; code: commit e4b4be7 with every "
+        "MPI's render counted)",
+    ),
+    (
+        "dssim16own",
+        "... the same, counting only each MPI's render of its own photo (not adopted: SSIM -0.047, LPIPS-vgg "
+        "+0.060; code: commit e4b4be7)",
+    ),
 ]
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
@@ -618,6 +634,7 @@ REMOVED_OPTIONS = {
     "ray_jitter": 0.0,
     "base_lr_scale": 1.0,
     "fine_alpha_from": 0.0,
+    "ssim_patches": 0,
 }
 
 

@@ -49,8 +49,6 @@ class LossConfig:
     # "cauchy" (occlusion-tolerant, on disparity; cmc.losses.robust_depth_consistency).
     depth_consistency: Literal["squared", "cauchy"] = "squared"
     lambda_alpha_entropy: float = 0.0  # visible alpha pushed to 0 or 1 (cmc.losses.alpha_entropy)
-    # 1 - SSIM of the input views' patch rays (cmc.losses.patch_dssim; needs TrainConfig.ssim_patches)
-    lambda_dssim: float = 0.0
     recon_only_fraction: float = 0.3  # first fraction of steps uses L_MSE only (paper: 15/50 epochs)
     ac_geometry_only: bool = False  # L_ac moves alpha only, not colours (see bench/RESULTS.md)
     cross_view_colour: float = 1.0  # factor on the colour gradients of MPI i from input view j != i
@@ -63,9 +61,6 @@ class TrainConfig:
     preset: Preset = "fast"
     steps: int = 400
     rays_per_view: int = 2048  # rays drawn from every input view per step
-    # Of those, this many square patches of SSIM_PATCH x SSIM_PATCH pixels (for loss.lambda_dssim);
-    # the rest are independent random pixels.
-    ssim_patches: int = 0
     unseen_rays: int = 2048  # rays drawn at each unseen pose per step
     unseen_poses: int = 1  # unseen poses per step
     unseen_jitter: float = 0.1  # std of the unseen-pose centre jitter, in mean baselines

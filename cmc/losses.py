@@ -18,7 +18,6 @@ from itertools import combinations
 
 import torch
 
-from cmc.metrics import ssim_map
 from cmc.rendering import RayOutput
 
 
@@ -32,27 +31,6 @@ def reconstruction_loss(outs: Sequence[RayOutput], target_rgb: torch.Tensor) -> 
     Shape: target_rgb [R, 3].
     """
     terms = [(_mask(o) * ((o.rgb - target_rgb) ** 2).sum(-1)).mean() for o in outs]
-    return torch.stack(terms).mean()
-
-
-def patch_dssim(outs: Sequence[RayOutput], target_rgb: torch.Tensor, patch: int) -> torch.Tensor:
-    """Structural dissimilarity ``1 - SSIM`` of each MPI's render of square pixel patches.
-
-    ``outs`` hold the rays of ``P`` patches of side ``patch`` (at least 11), patch-major and
-    row-major inside a patch, ``target_rgb`` their colours ``[P * patch^2, 3]``. SSIM is the
-    metric's (:func:`cmc.metrics.ssim_map`: 11-tap Gaussian window, valid positions inside each
-    patch). A patch counts for an MPI only where that MPI covers all of it. Mean over MPIs,
-    patches, channels and window positions.
-
-    Squared error per pixel does not see a blur or a structure a pixel off the way the eye (and
-    SSIM, LPIPS) does; this term compares local means, contrasts and correlations.
-    """
-    target = target_rgb.reshape(-1, patch, patch, 3).permute(0, 3, 1, 2)
-    terms = []
-    for o in outs:
-        x = o.rgb.reshape(-1, patch, patch, 3).permute(0, 3, 1, 2)
-        covered = _mask(o).reshape(-1, patch * patch).amin(1)
-        terms.append((covered * (1 - ssim_map(x, target)).mean((1, 2, 3))).mean())
     return torch.stack(terms).mean()
 
 

@@ -92,35 +92,28 @@ def ssim(a: ImageLike, b: ImageLike) -> float:
     Needs ``H, W >= 11``. Returns 1.0 for identical images.
     """
     ta, tb = _check_pair(a, b)
-    height, width, _ = ta.shape
-    win = 2 * int(_SSIM_TRUNCATE * _SSIM_SIGMA + 0.5) + 1
+    height, width, channels = ta.shape
+    taps = _gaussian_taps(_SSIM_SIGMA, _SSIM_TRUNCATE)
+    win = taps.numel()
     if height < win or width < win:
         raise ValueError(f"ssim needs images of at least {win}x{win} pixels, got {height}x{width}")
-    # Mean per channel, then over channels (equal-size channels: one global mean is the same).
-    return ssim_map(ta.permute(2, 0, 1)[None], tb.permute(2, 0, 1)[None]).mean().item()
 
-
-def ssim_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Local SSIM of two image batches ``[B, C, H, W]`` (values in [0, 1]), differentiable.
-
-    The statistics of :func:`ssim` (an 11-tap Gaussian window, sigma 1.5, population
-    covariances), over valid window positions only: returns ``[B, C, H - 10, W - 10]``.
-    Computed in the inputs' dtype.
-    """
-    batch, channels = x.shape[:2]
-    taps = _gaussian_taps(_SSIM_SIGMA, _SSIM_TRUNCATE).to(device=x.device, dtype=x.dtype)
-    win = taps.numel()
-    # [5 * B * C, 1, H, W]: the five quantities to average locally, one plane per channel.
-    planes = torch.cat([x, y, x * x, y * y, x * y]).reshape(-1, 1, *x.shape[2:])
+    # [5 * C, 1, H, W]: the five quantities to average locally, one plane per channel.
+    x = ta.permute(2, 0, 1)
+    y = tb.permute(2, 0, 1)
+    planes = torch.cat([x, y, x * x, y * y, x * y]).unsqueeze(1)
     filtered = F.conv2d(planes, taps.view(1, 1, win, 1))
     filtered = F.conv2d(filtered, taps.view(1, 1, 1, win))
-    mu_x, mu_y, e_xx, e_yy, e_xy = filtered.reshape(5, batch, channels, *filtered.shape[2:])
+    mu_x, mu_y, e_xx, e_yy, e_xy = filtered.squeeze(1).split(channels)
+
     var_x = e_xx - mu_x * mu_x
     var_y = e_yy - mu_y * mu_y
     cov_xy = e_xy - mu_x * mu_y
     c1 = _SSIM_K1**2  # (K1 * data_range)^2 with data_range = 1
     c2 = _SSIM_K2**2
-    return ((2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)) / ((mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2))
+    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)) / ((mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2))
+    # Mean per channel, then over channels (equal-size channels: one global mean is the same).
+    return ssim_map.mean().item()
 
 
 # ----------------------------------------------------------------------------------------------

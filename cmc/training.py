@@ -25,7 +25,7 @@ import torch
 
 from cmc.config import TrainConfig
 from cmc.datasets import Scene, validate_scene
-from cmc.errors import CheckpointError, ConfigError
+from cmc.errors import CheckpointError
 from cmc.eta import TrainingETA
 from cmc.geometry import sample_virtual_pose
 from cmc.losses import (
@@ -33,7 +33,6 @@ from cmc.losses import (
     appearance_consistency,
     depth_consistency,
     distortion,
-    patch_dssim,
     reconstruction_loss,
     robust_depth_consistency,
 )
@@ -41,7 +40,6 @@ from cmc.model import CMCModel
 from cmc.rendering import render_ray_groups
 
 CHECKPOINT_VERSION = 1
-SSIM_PATCH = 16  # side in pixels of the patches drawn for loss.lambda_dssim (6 x 6 SSIM windows each)
 
 
 class TrainingCancelled(Exception):
@@ -98,16 +96,6 @@ class Trainer:
 
     def __init__(self, scene: Scene, cfg: TrainConfig, device: str | torch.device = "cpu"):
         validate_scene(scene, min_views=2)
-        patch_rays = cfg.ssim_patches * SSIM_PATCH**2
-        if not 0 <= patch_rays <= cfg.rays_per_view:
-            raise ConfigError(
-                f"ssim_patches={cfg.ssim_patches} patches of {SSIM_PATCH}x{SSIM_PATCH} pixels must fit in "
-                f"rays_per_view={cfg.rays_per_view}"
-            )
-        if cfg.ssim_patches and min(scene.cameras.width, scene.cameras.height) < SSIM_PATCH:
-            raise ConfigError(f"ssim_patches needs images of at least {SSIM_PATCH}x{SSIM_PATCH} pixels")
-        if cfg.loss.lambda_dssim > 0 and cfg.ssim_patches == 0:
-            raise ConfigError("loss.lambda_dssim needs ssim_patches > 0 (SSIM is taken over patches)")
         self.scene, self.cfg = scene, cfg
         self.device = torch.device(device)
         torch.manual_seed(cfg.seed)
@@ -132,18 +120,6 @@ class Trainer:
         uv = torch.stack([idx % w, idx // w], -1).float() + 0.5
         return idx, uv
 
-    def _random_patches(self, gen: torch.Generator, count: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """``count`` random square patches of side SSIM_PATCH inside the image: flat pixel indices
-        [count * SSIM_PATCH^2], patch-major and row-major inside a patch, and centres [.., 2]."""
-        w, h = self.scene.cameras.width, self.scene.cameras.height
-        x0 = torch.randint(0, w - SSIM_PATCH + 1, (count, 1), generator=gen)
-        y0 = torch.randint(0, h - SSIM_PATCH + 1, (count, 1), generator=gen)
-        offset = torch.arange(SSIM_PATCH)
-        dx, dy = offset.repeat(SSIM_PATCH), offset.repeat_interleave(SSIM_PATCH)
-        idx = ((y0 + dy) * w + x0 + dx).reshape(-1).to(self.device)
-        uv = torch.stack([idx % w, idx // w], -1).float() + 0.5
-        return idx, uv
-
     def _colour_grads(self, mpi: int) -> list[float]:
         """Factor on the colour gradients of MPI ``mpi`` from each input view's rays."""
         s = self.cfg.loss.cross_view_colour
@@ -158,12 +134,8 @@ class Trainer:
         full = step >= lc.recon_only_fraction * cfg.steps
         # Target cameras of this step: every input view, then the unseen poses.
         groups, targets = [], []
-        patch_rays = cfg.ssim_patches * SSIM_PATCH**2  # the last rays of each input view's group
         for j in range(len(self.scene)):
-            idx, uv = self._random_pixels(gen, cfg.rays_per_view - patch_rays)
-            if patch_rays:
-                pidx, puv = self._random_patches(gen, cfg.ssim_patches)
-                idx, uv = torch.cat([idx, pidx]), torch.cat([uv, puv])
+            idx, uv = self._random_pixels(gen, cfg.rays_per_view)
             groups.append((self.K[j], self.poses[j], uv))
             targets.append(self.images[j][idx])
         use_unseen = full and (lc.lambda_ac > 0 or lc.lambda_dc > 0)
@@ -185,15 +157,6 @@ class Trainer:
             for j in range(n):
                 by_target[j] = [replace(o, rgb=exposure.convert(o.rgb, i, j)) for i, o in enumerate(by_target[j])]
         losses = {"mse": torch.stack([reconstruction_loss(by_target[j], targets[j]) for j in range(n)]).mean()}
-        if lc.lambda_dssim > 0:
-            tail = slice(cfg.rays_per_view - patch_rays, None)
-            dssim = [
-                patch_dssim([replace(o, rgb=o.rgb[tail], acc=o.acc[tail]) for o in by_target[j][j : j + 1]], targets[j][tail], SSIM_PATCH)
-                for j in range(n)
-            ]
-            losses["dssim"] = torch.stack(dssim).mean()
-        else:
-            losses["dssim"] = zero
         if lc.depth_consistency == "cauchy":
             scale = 1.0 / (self.model.cfg.num_planes - 1)
             dc_loss = lambda o: robust_depth_consistency(o, self.scene.near, self.scene.far, scale)  # noqa: E731
@@ -219,7 +182,6 @@ class Trainer:
         losses["smooth"] = torch.stack(smooth).mean() if smooth else zero
         losses["total"] = (
             losses["mse"]
-            + lc.lambda_dssim * losses["dssim"]
             + lc.lambda_dc_input * losses["dc_input"]
             + lc.lambda_ac * losses["ac"]
             + lc.lambda_dc * losses["dc"]
