@@ -28,9 +28,6 @@ class ModelConfig:
     # (cmc.model.content_density, cmc.geometry.content_plane_depths), so that a surface lies
     # nearer a plane and a view far from the inputs sees it less displaced.
     plane_density_floor: float = 1.0
-    # The inner planes of MPI i of N moved by (i + 1/2) / N - 1/2 of a spacing: the MPIs snap a
-    # surface to different depths, so that their blend is not off by the same plane error.
-    plane_stagger: bool = False
     margin: float = 1.2  # plane extent relative to the reference image (see MPIFrame)
     # Learn each input photo's colour response (gain and offset per channel, cmc.model.ExposureResponse),
     # so that an MPI is compared with another input photo in that photo's exposure and white balance.

@@ -23,9 +23,7 @@ def plane_depths(near: float, far: float, num_planes: int) -> np.ndarray:
     return 1.0 / np.linspace(1.0 / near, 1.0 / far, num_planes)
 
 
-def content_plane_depths(
-    near: float, far: float, density: np.ndarray, floor: float, offset: float = 0.0
-) -> np.ndarray:
+def content_plane_depths(near: float, far: float, density: np.ndarray, floor: float) -> np.ndarray:
     """[D] plane depths from ``near`` (index 0) to ``far`` (index D-1), spaced in disparity so that
     the planes crowd where the scene's surfaces are.
 
@@ -37,9 +35,7 @@ def content_plane_depths(
     more, not all of them. Plane k of the result sits at the k / (D - 1) quantile of the mixture
     ``floor`` x uniform + ``(1 - floor)`` x that cube-root density. ``floor`` in (0, 1] bounds
     the spacing: no gap exceeds 1 / floor times the uniform spacing (``floor = 1``:
-    :func:`plane_depths`). Nearest and farthest stay ``near`` and ``far``. ``offset`` in
-    (-1, 1) moves the inner planes to the ``(k + offset) / (D - 1)`` quantiles (a fraction of a
-    spacing; see ``ModelConfig.plane_stagger``).
+    :func:`plane_depths`). Nearest and farthest stay ``near`` and ``far``.
     """
     density = np.asarray(density, dtype=np.float64)
     D = len(density)
@@ -56,10 +52,7 @@ def content_plane_depths(
     companded = np.cbrt(density / total / width) * width
     mass = floor * width + (1 - floor) * companded / companded.sum()
     cdf = np.concatenate([[0.0], np.cumsum(mass)])
-    if not -1 < offset < 1:
-        raise ValueError(f"plane offset must be in (-1, 1) spacings, got {offset}")
-    q = np.clip((np.arange(D) + offset) / (D - 1), 0.0, 1.0)
-    t = np.interp(q, cdf / cdf[-1], edges)
+    t = np.interp(np.linspace(0.0, 1.0, D), cdf / cdf[-1], edges)
     disparity = 1.0 / near + t * (1.0 / far - 1.0 / near)
     depths = 1.0 / disparity
     depths[0], depths[-1] = uniform[0], uniform[-1]

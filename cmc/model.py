@@ -159,7 +159,7 @@ class CMCModel(nn.Module):
         self.width, self.height = cams.width, cams.height
         images = torch.as_tensor(scene.images, device=device).permute(0, 3, 1, 2)
 
-        def frames(depths: list[np.ndarray] | None = None) -> list[MPIFrame]:
+        def frames(depths: np.ndarray | None = None) -> list[MPIFrame]:
             return [
                 MPIFrame.create(
                     cams.K[i],
@@ -171,7 +171,7 @@ class CMCModel(nn.Module):
                     cams.height,
                     cfg.margin,
                     device,
-                    None if depths is None else depths[i],
+                    depths,
                 )
                 for i in range(len(scene))
             ]
@@ -179,16 +179,9 @@ class CMCModel(nn.Module):
         self.frames = frames()
         if not 0 < cfg.plane_density_floor <= 1:
             raise ConfigError(f"model.plane_density_floor must be in (0, 1], got {cfg.plane_density_floor}")
-        if cfg.plane_density_floor < 1 or cfg.plane_stagger:
-            if cfg.plane_density_floor < 1:
-                density = content_density(self.frames, images, cfg)
-            else:
-                density = np.ones(cfg.num_planes)
-            n = len(scene)
-            offsets = [(i + 0.5) / n - 0.5 if cfg.plane_stagger else 0.0 for i in range(n)]
-            self.frames = frames(
-                [content_plane_depths(self.near, self.far, density, cfg.plane_density_floor, o) for o in offsets]
-            )
+        if cfg.plane_density_floor < 1:
+            density = content_density(self.frames, images, cfg)
+            self.frames = frames(content_plane_depths(self.near, self.far, density, cfg.plane_density_floor))
         fields: list[MPIField] = []
         for i, fr in enumerate(self.frames):
             if cfg.field_type == "mlp":
