@@ -52,24 +52,34 @@ FERN_CMD = (
 # (model.pyramid.stereo_smoothness), on the 2x sweep grid (model.pyramid.stereo_supersample),
 # trained with the compiled texture sampler (cmc.plane_sampling), base colours bicubic
 # (model.pyramid.base_interpolation).
-FERN_AFTER = "view_quality_fern_exposure.json"
-SYN_AFTER = "view_quality_synthetic_exposure.json"
-FERN_AFTER_FLAGS = " --set model.exposure_compensation=true  (before that became the default)"
-SYN_AFTER_FLAGS = " --set model.exposure_compensation=true  (before that became the default)"
+FERN_AFTER = "view_quality_fern_now.json"
+SYN_AFTER = "view_quality_synthetic_now.json"
+# The preset before the view-quality work, rerun from a worktree of its commit on the day of the
+# after runs, so that train seconds and render ms compare (the scores are those of its first runs,
+# view_quality_*_before.json, 2026-11-23: training is deterministic).
+FERN_BEFORE = "view_quality_fern_before_rerun.json"
+SYN_BEFORE = "view_quality_synthetic_before_rerun.json"
+BEFORE_CMD = (
+    "cd WORKTREE_OF_f69d27e && CMC_LPIPS_DIR=/work/shared/weights PYTHONPATH=. python -m cmc.cli bench {} "
+    "--out /work/main/bench/{} --save-dir /tmp/runs/before  (the same day as the after run)"
+)
+AFTER_FLAGS = ""
 AFTER_NOTE = (
-    "These runs had the CPU to themselves, on two threads; most earlier rows of the table below ran "
-    "on one thread while other work used the CPU at times, so compare train seconds within a "
-    "session only. Training is deterministic: reruns of a `fast` preset in later sessions scored exactly as "
-    "their reports (the rerun rows below). The after runs ran from worktrees of the commits they name; the "
-    "semi-global row before them ran from a worktree of e6ee3da with the semi-global aggregation of adc8b26 "
-    "added, uncommitted then (the code the adoption commit holds). The synthetic "
-    "run of the 2x sweep grid and the first semi-global row of the fern table ran from a copy of the working "
-    "tree of commit 56a7df5 with the new options not yet committed, so those reports could not read their "
-    "commit: `56a7df5+dirty` was written into them by hand (the code is that of 7b3bbda, and adc8b26 for "
-    "the semi-global row). The runs of the content-spaced planes ran from the working tree of cfba004 "
-    "with the code of 8f6e622 not yet committed (its tests aside), hence `cfba004+dirty` in them; the after "
-    "runs (exposure compensation) from the working tree of 1f80c02 with the code of 9f19156 not yet committed "
-    "(the preset's default aside), hence `1f80c02+dirty`.\n"
+    "Before and after ran one after the other on the same day, each with the CPU to itself, on two "
+    "threads; most earlier rows of the tables below ran on other days, some on one thread while other work "
+    "used the CPU, so compare train seconds within a session only (this host ran fern's `fast` in 220 s "
+    "today, 315-353 s two sessions ago). Training is deterministic: every rerun scored exactly as the first "
+    "run of the same preset (the before runs as `view_quality_*_before.json` of 2026-11-23, the after runs "
+    "as those of the exposure compensation's adoption). The after runs say `cb4d298+dirty`: the code of "
+    "cb4d298, with only bench/ files edited. Earlier rows: the semi-global row ran from a worktree of "
+    "e6ee3da with the semi-global aggregation of adc8b26 added, uncommitted then (the code the adoption "
+    "commit holds). The synthetic run of the 2x sweep grid and the first semi-global row of the fern table "
+    "ran from a copy of the working tree of commit 56a7df5 with the new options not yet committed, so those "
+    "reports could not read their commit: `56a7df5+dirty` was written into them by hand (the code is that "
+    "of 7b3bbda, and adc8b26 for the semi-global row). The runs of the content-spaced planes ran from the "
+    "working tree of cfba004 with the code of 8f6e622 not yet committed (its tests aside), hence "
+    "`cfba004+dirty` in them; those of the exposure compensation from the working tree of 1f80c02 with the "
+    "code of 9f19156 not yet committed (the preset's default aside), hence `1f80c02+dirty`.\n"
 )
 # The previous `fast`: the plane sweep on a 2x grid (model.pyramid.stereo_supersample).
 SYN_PREV = "view_quality_synthetic_ss2.json"
@@ -161,6 +171,11 @@ STAGGER_LABEL = (
     "snap a surface to different depths and their blend is not off by the same plane error (not adopted: fern "
     "-0.04 dB, SSIM the same, LPIPS-vgg -0.004; synthetic halfway +0.06 dB, near -0.01 dB, beyond +0.03 dB, "
     "depth error the same: noise; the option was removed; code: commit d77b3d4)"
+)
+NODC_NOW_LABEL = (
+    "`fast` now without L_dc^I and L_dc, re-checked after the content-spaced planes and the exposure "
+    "compensation (they still pay: fern -0.07 dB, SSIM -0.008, LPIPS-vgg +0.011; synthetic halfway -0.36 dB, "
+    "near -0.39 dB, beyond -0.46 dB, `posts` halfway +0.08 dB the one cell better without them)"
 )
 # The reports of bench/fern_every_view.py, oldest first, and what their bakes are (the fern runs of
 # an adoption: the preset before and after it).
@@ -447,6 +462,7 @@ FERN_STEPS = [
     ("groups8", GROUPS8_LABEL),
     ("rerun_groups8", "the previous `fast`, rerun in a later session (the same scores; the same day as the row below)"),
     ("adaptive", ADAPTIVE_LABEL),
+    ("exposure", NOW_LABEL),
     (
         "patches16",
         "`fast` now with half of each input view's rays drawn as 8 patches of 16x16 pixels (the sampling a patch "
@@ -464,7 +480,12 @@ FERN_STEPS = [
         "+0.060; code: commit e4b4be7)",
     ),
     ("stagger", STAGGER_LABEL),
+    ("exposure_nodc", NODC_NOW_LABEL),
 ]
+NOW_RERUN_LABEL = (
+    "`fast` now, rerun the same day as `fast` before (the same scores as the row of its adoption; this "
+    "host's timings of the day)"
+)
 # Ablation rows of the view-quality work (report files in bench/), in the order they were run.
 VQ_ABLATION = [
     ("view_quality_synthetic_before.json", "`fast` before"),
@@ -589,8 +610,10 @@ VQ_ABLATION = [
     ("view_quality_synthetic_rays8192.json", RAYS8192_LABEL),
     ("view_quality_synthetic_groups8.json", GROUPS8_LABEL),
     ("view_quality_synthetic_adaptive.json", ADAPTIVE_LABEL),
-    (SYN_AFTER, NOW_LABEL),
+    ("view_quality_synthetic_exposure.json", NOW_LABEL),
     ("view_quality_synthetic_stagger.json", STAGGER_LABEL),
+    ("view_quality_synthetic_exposure_nodc.json", NODC_NOW_LABEL),
+    (SYN_AFTER, NOW_RERUN_LABEL),
 ]
 
 
@@ -680,12 +703,12 @@ def synthetic_rows(r: dict) -> list[str]:
 def view_quality_section() -> list[str]:
     """Issue 14: fern and the wide-baseline synthetic set, before and after, and the ablation."""
     out = ["## View quality (issue 14): `fast` before and after\n"]
-    fb, fa = load("view_quality_fern_before.json"), load(FERN_AFTER)
+    fb0, fb, fa = load("view_quality_fern_before.json"), load(FERN_BEFORE), load(FERN_AFTER)
     if fb and fa:
         out += [
             "LLFF fern, RegNeRF 3-view protocol (test views 0, 8, 16), baked renderer, all 48 planes.\n",
-            "Before: " + header(fb, FERN_CMD.format("view_quality_fern_before.json") + "  (at commit f69d27e)"),
-            "After: " + header(fa, FERN_CMD.format(FERN_AFTER) + FERN_AFTER_FLAGS),
+            "Before: " + header(fb, BEFORE_CMD.format("llff --data /work/shared/datasets/llff --scenes fern", FERN_BEFORE)),
+            "After: " + header(fa, FERN_CMD.format(FERN_AFTER) + AFTER_FLAGS),
             AFTER_NOTE,
             "| preset | view | PSNR | SSIM | LPIPS-alex | LPIPS-vgg |",
             "|---|---|---|---|---|---|",
@@ -720,16 +743,16 @@ def view_quality_section() -> list[str]:
             + ".\n",
         ]
     steps = [(load(f"view_quality_fern_{n}.json"), label) for n, label in FERN_STEPS]
-    if fb and fa and all(r for r, _ in steps):
+    if fb0 and fa and all(r for r, _ in steps):
         out += [
             "Fern along the way (same command, settings against `fast` now):\n",
             "| run | PSNR | SSIM | LPIPS-alex | LPIPS-vgg | train s | commit | settings |",
             "|---|---|---|---|---|---|---|---|",
         ]
         for r, label in [
-            (fb, "`fast` before"),
+            (fb0, "`fast` before"),
             *steps,
-            (fa, NOW_LABEL),
+            (fa, NOW_RERUN_LABEL),
         ]:
             s = r["scenes"][0]
             flags = " ".join(f"`{f}`" for f in config_flags(r["config"], fa["config"])) or "(none)"
@@ -738,7 +761,7 @@ def view_quality_section() -> list[str]:
                 f"| {s['train_seconds']:.0f} | {r['git_commit']} | {flags} |"
             )
         out.append("")
-    sb, sa = load("view_quality_synthetic_before.json"), load(SYN_AFTER)
+    sb, sa = load(SYN_BEFORE), load(SYN_AFTER)
     if sb and sa:
         head = [
             "| scene | views | PSNR | SSIM | LPIPS-alex | LPIPS-vgg | depth rel. error | train s | render ms |",
@@ -753,11 +776,11 @@ def view_quality_section() -> list[str]:
             "moved by 5 % of the baseline towards the others (near); later runs also score each input "
             "moved by half the baseline away from the others (beyond: extrapolation, as fern's test view 16 "
             "and many LLFF test views are); depth error = median |z - z_true| / z_true.\n",
-            "Before: " + header(sb, SYN_CMD.format("view_quality_synthetic_before.json") + "  (at commit f69d27e)"),
+            "Before: " + header(sb, BEFORE_CMD.format("synthetic", SYN_BEFORE)),
             *head,
             *synthetic_rows(sb),
             "",
-            "After: " + header(sa, SYN_CMD.format(SYN_AFTER) + SYN_AFTER_FLAGS),
+            "After: " + header(sa, SYN_CMD.format(SYN_AFTER) + AFTER_FLAGS),
             *head,
             *synthetic_rows(sa),
             "",
