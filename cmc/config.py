@@ -117,7 +117,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       uniform in disparity, the rest following the cube root of the sweep's density), each input
       photo's colour response learnt and renders shown in their mean
       (``model.exposure_compensation``: photos shot at different exposures do not bend the
-      geometry), 400 steps: 4-5 minutes on fern (504x378), 2 CPU cores.
+      geometry), 400 steps: 4-6 minutes on fern (504x378), 2 CPU cores.
     """
     if name == "paper":
         cfg = TrainConfig(
