@@ -63,12 +63,12 @@ BEFORE_CMD = (
     "cd WORKTREE_OF_f69d27e && CMC_LPIPS_DIR=/work/shared/weights PYTHONPATH=. python -m cmc.cli bench {} "
     "--out /work/main/bench/{} --save-dir /tmp/runs/before  (the same day as the after run)"
 )
-AFTER_FLAGS = ""
 AFTER_NOTE = (
     "Before and after ran one after the other on the same day, each with the CPU to itself, on two "
     "threads; most earlier rows of the tables below ran on other days, some on one thread while other work "
     "used the CPU, so compare train seconds within a session only (this host ran fern's `fast` in 220 s "
-    "today, 315-353 s two sessions ago). Training is deterministic: every rerun scored exactly as the first "
+    "on the day of these runs, in 315-353 s two sessions earlier). Training is deterministic: every rerun "
+    "scored exactly as the first "
     "run of the same preset (the before runs as `view_quality_*_before.json` of 2026-11-23, the after runs "
     "as those of the exposure compensation's adoption). The after runs say `cb4d298+dirty`: the code of "
     "cb4d298, with only bench/ files edited. Earlier rows: the semi-global row ran from a worktree of "
@@ -728,7 +728,7 @@ def view_quality_section() -> list[str]:
             "LLFF fern, RegNeRF 3-view protocol (test views 0, 8, 16), baked renderer, all 48 planes.\n",
             "Before: "
             + header(fb, BEFORE_CMD.format("llff --data /work/shared/datasets/llff --scenes fern", FERN_BEFORE)),
-            "After: " + header(fa, FERN_CMD.format(FERN_AFTER) + AFTER_FLAGS),
+            "After: " + header(fa, FERN_CMD.format(FERN_AFTER)),
             AFTER_NOTE,
             "| preset | view | PSNR | SSIM | LPIPS-alex | LPIPS-vgg |",
             "|---|---|---|---|---|---|",
@@ -800,7 +800,7 @@ def view_quality_section() -> list[str]:
             *head,
             *synthetic_rows(sb),
             "",
-            "After: " + header(sa, SYN_CMD.format(SYN_AFTER) + AFTER_FLAGS),
+            "After: " + header(sa, SYN_CMD.format(SYN_AFTER)),
             *head,
             *synthetic_rows(sa),
             "",
