@@ -153,9 +153,12 @@ class Trainer:
         n = len(self.scene)
         zero = torch.zeros((), device=self.device)
         exposure = self.model.exposure
-        if exposure is not None:  # MPI i's colours in photo j's response before they meet photo j
-            for j in range(n):
-                by_target[j] = [replace(o, rgb=exposure.convert(o.rgb, i, j)) for i, o in enumerate(by_target[j])]
+        if exposure is not None:
+            # MPI i's colours in photo j's response before they meet photo j; at an unseen pose
+            # every MPI's in the mean response, so that L_ac compares one response with itself.
+            for t in range(len(by_target)):
+                dst = t if t < n else None
+                by_target[t] = [replace(o, rgb=exposure.convert(o.rgb, i, dst)) for i, o in enumerate(by_target[t])]
         losses = {"mse": torch.stack([reconstruction_loss(by_target[j], targets[j]) for j in range(n)]).mean()}
         if lc.depth_consistency == "cauchy":
             scale = 1.0 / (self.model.cfg.num_planes - 1)

@@ -462,4 +462,15 @@ def test_exposure_compensation_learns_the_gains_and_keeps_the_geometry():
                 shown = trainer.model.render(K, P, W2, H2).rgb.numpy().mean()
             assert shown / split.train.images[1].mean() == pytest.approx(1.0, abs=0.04)
             assert train.images[1].mean() / split.train.images[1].mean() > 1.1
+            # L_ac compares the MPIs at unseen poses in one response: the photos' gains are not
+            # read as disagreement (each MPI holds its own photo's brightness).
+            trainer.cfg = replace(trainer.cfg, loss=replace(trainer.cfg.loss, lambda_ac=1.0))
+            with torch.no_grad():
+                ac = [trainer.compute_losses(trainer.cfg.steps - 1 - s)["ac"].item() for s in range(4)]
+                exp = trainer.model.exposure
+                saved = exp.log_gain.clone()
+                exp.log_gain.zero_()  # as if the responses were not converted
+                ac_raw = [trainer.compute_losses(trainer.cfg.steps - 1 - s)["ac"].item() for s in range(4)]
+                exp.log_gain.copy_(saved)
+            assert np.mean(ac) < 0.5 * np.mean(ac_raw), (ac, ac_raw)
     assert errors[True] < 0.8 * errors[False], errors
