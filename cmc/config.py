@@ -178,7 +178,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
         loss = LossConfig(
             lambda_ac=0.0,
             lambda_distortion=0.01,
-            lambda_alpha_entropy=0.01,
+            lambda_alpha_entropy=0.003,
             depth_consistency="cauchy",
             lambda_dc=0.01,
             lambda_dc_input=0.01,
