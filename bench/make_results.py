@@ -48,10 +48,7 @@ FERN_CMD = (
     "CMC_LPIPS_DIR=../shared/weights cmc bench llff --data ../shared/datasets/llff --scenes fern "
     "--out bench/{} --save-dir /tmp/runs"
 )
-# The `fast` preset now: semi-global aggregation of the sweep's cost at softmin temperature 0.2
-# (model.pyramid.stereo_smoothness), on the 2x sweep grid (model.pyramid.stereo_supersample),
-# trained with the compiled texture sampler (cmc.plane_sampling), base colours bicubic
-# (model.pyramid.base_interpolation).
+# The `fast` preset now (the alpha entropy prior at 0.003), rerun the same day as the before runs.
 FERN_AFTER = "view_quality_fern_now.json"
 SYN_AFTER = "view_quality_synthetic_now.json"
 # The preset before the view-quality work, rerun from a worktree of its commit on the day of the
@@ -65,21 +62,23 @@ BEFORE_CMD = (
 )
 AFTER_NOTE = (
     "Before and after ran one after the other on the same day, each with the CPU to itself, on two "
-    "threads; most earlier rows of the tables below ran on other days, some on one thread while other work "
-    "used the CPU, so compare train seconds within a session only (this host ran fern's `fast` in 220 s "
-    "on the day of these runs, in 315-353 s two sessions earlier). Training is deterministic: every rerun "
-    "scored exactly as the first "
-    "run of the same preset (the before runs as `view_quality_*_before.json` of 2026-11-23, the after runs "
-    "as those of the exposure compensation's adoption). The after runs say `cb4d298+dirty`: the code of "
-    "cb4d298, with only bench/ files edited. Earlier rows: the semi-global row ran from a worktree of "
-    "e6ee3da with the semi-global aggregation of adc8b26 added, uncommitted then (the code the adoption "
-    "commit holds). The synthetic run of the 2x sweep grid and the first semi-global row of the fern table "
-    "ran from a copy of the working tree of commit 56a7df5 with the new options not yet committed, so those "
-    "reports could not read their commit: `56a7df5+dirty` was written into them by hand (the code is that "
-    "of 7b3bbda, and adc8b26 for the semi-global row). The runs of the content-spaced planes ran from the "
-    "working tree of cfba004 with the code of 8f6e622 not yet committed (its tests aside), hence "
-    "`cfba004+dirty` in them; those of the exposure compensation from the working tree of 1f80c02 with the "
-    "code of 9f19156 not yet committed (the preset's default aside), hence `1f80c02+dirty`.\n"
+    "threads; most earlier rows of the tables below ran on other days, some on one thread while other "
+    "work used the CPU, so compare train seconds within a session only (this host ran fern's `fast` in "
+    "300 s on the day of these runs, in 220 s two sessions earlier and about 3x slower the session "
+    "between). Training is deterministic: every rerun scored exactly as the first run of the same preset "
+    "(the before runs as `view_quality_*_before.json` of 2026-11-23, the after runs as those of the "
+    "lighter alpha entropy prior, `view_quality_*_entropy003.json`). The after runs say `863e1e4+dirty`: "
+    "the code of 863e1e4, with only bench/ files edited. Earlier rows: the semi-global row ran from a "
+    "worktree of e6ee3da with the semi-global aggregation of adc8b26 added, uncommitted then (the code "
+    "the adoption commit holds). The synthetic run of the 2x sweep grid and the first semi-global row of "
+    "the fern table ran from a copy of the working tree of commit 56a7df5 with the new options not yet "
+    "committed, so those reports could not read their commit: `56a7df5+dirty` was written into them by "
+    "hand (the code is that of 7b3bbda, and adc8b26 for the semi-global row). The runs of the content-"
+    "spaced planes ran from the working tree of cfba004 with the code of 8f6e622 not yet committed (its "
+    "tests aside), hence `cfba004+dirty` in them; those of the exposure compensation from the working "
+    "tree of 1f80c02 with the code of 9f19156 not yet committed (the preset's default aside), hence "
+    "`1f80c02+dirty`. The row of the lighter concentration prior says `5ccc1a2+dirty`: the code of "
+    "863e1e4 before it was committed.\n"
 )
 # The previous `fast`: the plane sweep on a 2x grid (model.pyramid.stereo_supersample).
 SYN_PREV = "view_quality_synthetic_ss2.json"
@@ -161,8 +160,8 @@ ADAPTIVE_LABEL = (
     "halfway +0.04 dB, near +0.02 dB (`slanted` near -0.43), LPIPS-vgg and depth error better in every group; "
     "no serving cost)"
 )
-NOW_LABEL = (
-    "**`fast` now**: each input photo's colour response learnt, renders in their mean "
+EXPOSURE_LABEL = (
+    "the previous `fast`: each input photo's colour response learnt, renders in their mean "
     "(`model.exposure_compensation=true`; at equal exposure the same scores: fern +0.001 SSIM, synthetic within "
     '0.03 dB; with the inputs at colour gains 1, 1.15, 0.87: section "Photos of differing exposure")'
 )
@@ -191,8 +190,8 @@ NOENTROPY_LABEL = (
     "everywhere. Train seconds not comparable, as the row above)"
 )
 ENTROPY003_LABEL = (
-    "`fast` now with the alpha entropy prior at 0.003 instead of 0.01 (not adopted yet, only for want of time "
-    "to rerun the same-day before/after pair and the test suite in the session that measured it: fern +0.15 dB, "
+    "**`fast` now**: the alpha entropy prior at 0.003 instead of 0.01 (`loss.lambda_alpha_entropy=0.003`; "
+    "adopted in the next session, after the same-day before/after pair and the test suite: fern +0.15 dB, "
     "SSIM +0.009, LPIPS-alex +0.004, LPIPS-vgg -0.004, every test view better in PSNR, SSIM and LPIPS-vgg "
     "(view 16 SSIM 0.622 -> 0.634); synthetic halfway +0.00 dB, near +0.01 dB, beyond -0.01 dB, LPIPS-vgg "
     "0.001-0.002 better in each group; renders about 1.4x slower (fern 240 against 170 ms on the same slow "
@@ -498,7 +497,7 @@ FERN_STEPS = [
     ("groups8", GROUPS8_LABEL),
     ("rerun_groups8", "the previous `fast`, rerun in a later session (the same scores; the same day as the row below)"),
     ("adaptive", ADAPTIVE_LABEL),
-    ("exposure", NOW_LABEL),
+    ("exposure", EXPOSURE_LABEL),
     (
         "patches16",
         "`fast` now with half of each input view's rays drawn as 8 patches of 16x16 pixels (the sampling a patch "
@@ -522,6 +521,17 @@ FERN_STEPS = [
     ("sweepmean", SWEEP_MEAN_LABEL),
     ("noentropy", NOENTROPY_LABEL),
     ("entropy003", ENTROPY003_LABEL),
+    (
+        "entropy01_today",
+        "the previous `fast` (the alpha entropy prior at 0.01), rerun the same day as the pair above, for its "
+        "train seconds and render ms (the same scores as the rows where it was `fast` now; baked render 83 ms "
+        "median against 112 ms for `fast` now: the lighter prior leaves more faint alpha, 1.36x slower)",
+    ),
+    (
+        "dist003",
+        "`fast` now with the concentration prior at 0.003 instead of 0.01 (not adopted: +0.05 dB, SSIM +0.001, "
+        "LPIPS-alex +0.001, LPIPS-vgg +0.001: noise; the synthetic set was not run)",
+    ),
 ]
 NOW_RERUN_LABEL = (
     "`fast` now, rerun the same day as `fast` before (the same scores as the row of its adoption; this "
@@ -651,7 +661,7 @@ VQ_ABLATION = [
     ("view_quality_synthetic_rays8192.json", RAYS8192_LABEL),
     ("view_quality_synthetic_groups8.json", GROUPS8_LABEL),
     ("view_quality_synthetic_adaptive.json", ADAPTIVE_LABEL),
-    ("view_quality_synthetic_exposure.json", NOW_LABEL),
+    ("view_quality_synthetic_exposure.json", EXPOSURE_LABEL),
     ("view_quality_synthetic_stagger.json", STAGGER_LABEL),
     ("view_quality_synthetic_exposure_nodc.json", NODC_NOW_LABEL),
     ("view_quality_synthetic_exposure_ac.json", AC_NOW_LABEL),
