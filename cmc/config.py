@@ -110,7 +110,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       the photo sees past the outline is background, not a smear of the occluder), and behind
       every texel's visible surface the base colours of the farther plane groups starting as the
       background nearby (``stereo_hidden_colour_everywhere``), the colour
-      gradients each MPI gets from the other input views' rays scaled by 0.1
+      gradients each MPI gets from the other input views' rays scaled by 0.25
       (``loss.cross_view_colour``: its colours stay those of its own photo, its geometry answers
       to every view), 4096 rays per input view and step, the 48 planes spaced by where a first
       plane sweep finds the surfaces (``model.plane_density_floor=0.25``: a quarter of them
@@ -147,11 +147,8 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
         # Cross-view colour gradients at 0.25: each MPI reproduced its own photo at 28-29 dB, pulled
         # toward a compromise with the other photos; now at 30-31.5 dB. Fern +0.07 dB, LPIPS-vgg
         # -0.006 (every test view better); synthetic near views +0.41 dB, halfway the same PSNR
-        # with LPIPS-vgg 0.003 worse. 0.1 scored the same on fern then; a gate by the reference
-        # camera's visibility did worse. With the lighter entropy prior 0.1 pays: fern 23.05 / 0.742 /
-        # 0.213 -> 23.14 / 0.744 / 0.213, synthetic halfway +0.15 dB and beyond +0.12 dB (every
-        # scene better in both), near -0.04 dB (noise); 0.5 did worse on fern (22.97 / 0.739).
-        # 4096 rays per input view and step instead of 2048: the textures
+        # with LPIPS-vgg 0.003 worse. 0.1 scored the same on fern; a gate by the reference camera's
+        # visibility did worse. 4096 rays per input view and step instead of 2048: the textures
         # were still underfitted at step 400 (the loss still falling); fern LPIPS-vgg 0.253 -> 0.243
         # for 1.5x the training time (600 steps of 2048 rays did about as well; a later or earlier
         # end of the learning-rate decay did worse). The background's colour continued behind every
@@ -188,7 +185,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
             depth_consistency="cauchy",
             lambda_dc=0.01,
             lambda_dc_input=0.01,
-            cross_view_colour=0.1,
+            cross_view_colour=0.25,
         )
         model = ModelConfig(
             plane_density_floor=0.25,

@@ -372,16 +372,12 @@ def test_cross_view_colour_factor_keeps_each_mpi_on_its_photo():
     drawn mostly from the nearest MPI, are better; the halfway views do not suffer (when this was
     written, ``posts`` at 84x63, 100 steps, factor 1 -> 0.25: own photo +2.0 to +2.2 dB, near views
     26.08 -> 26.51 dB, halfway 24.82 -> 24.75 dB; with the alpha entropy prior at 0.003, near
-    26.86 -> 27.04 dB, halfway 25.41 -> 25.36 dB). The preset's factor, 0.1, was chosen on the
-    full-size benchmark (synthetic halfway +0.15 dB over 0.25); at this size and step count it
-    scores below 0.25 (near 26.83, halfway 25.17 dB), so here it is held only to its own photos."""
+    26.86 -> 27.04 dB, halfway 25.41 -> 25.36 dB)."""
     W2, H2 = 84, 63
     split = wide_baseline_split("posts", W2, H2)
     base = preset_config("fast", steps=100, rays_per_view=512, unseen_rays=256)
-    factor_now = base.loss.cross_view_colour  # the preset's
-    assert factor_now < 1
     own, views = {}, {}
-    for factor in sorted({1.0, 0.25, factor_now}, reverse=True):
+    for factor in (1.0, 0.25):
         trainer = Trainer(split.train, with_settings(base, ["model.num_planes=24", f"loss.cross_view_colour={factor}"]))
         trainer.fit()
         cams, tests = split.train.cameras, split.test.cameras
@@ -392,7 +388,6 @@ def test_cross_view_colour_factor_keeps_each_mpi_on_its_photo():
                 out = trainer.model.render(tests.K[k], tests.world_from_cam[k], W2, H2)
                 views.setdefault((factor, kind), []).append(psnr(out.rgb.numpy(), split.test.images[k]))
     assert min(np.subtract(own[0.25], own[1.0])) > 1.0, own
-    assert min(np.subtract(own[factor_now], own[1.0])) > 1.0, own
     mean = {key: float(np.mean(v)) for key, v in views.items()}
     assert mean[(0.25, "near")] > mean[(1.0, "near")] + 0.1, mean
     assert mean[(0.25, "halfway")] > mean[(1.0, "halfway")] - 0.2, mean
