@@ -7,11 +7,11 @@ predicted them; a variant is adopted only after the CPU benchmark (`cmc bench`) 
 
 Usage (repository root; data as in bench/gpu_run.sh):
     PYTHONPATH=. python bench/explore_gpu.py VARIANTS.json OUT_DIR --data .gpudata/llff/fern \
-        --workers 7 --seconds 330 [--synthetic posts,cards] [--device cuda] [--steps N]
+        --workers 7 --seconds 330 [--grace 120] [--synthetic posts,cards] [--device cuda] [--steps N]
 VARIANTS.json maps a name to a list of `--set` style settings (``[]`` is the preset itself).
 Every fern run comes first, then the synthetic scenes; a task not started before the deadline is
-skipped. One JSON line per (variant, scene), with device, commit and date, is appended to
-OUT_DIR/explore.jsonl as it ends.
+skipped, and one still running ``--grace`` seconds after it is dropped. One JSON line per
+(variant, scene), with device, commit and date, is appended to OUT_DIR/explore.jsonl as it ends.
 """
 
 from __future__ import annotations
@@ -110,6 +110,9 @@ def main() -> None:
     ap.add_argument("--synthetic", default="")
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--steps", type=int, default=0)
+    ap.add_argument(
+        "--grace", type=float, default=120, help="seconds a task started before the deadline may run past it"
+    )
     args = ap.parse_args()
     deadline = time.time() + args.seconds
     variants: dict[str, list[str]] = json.loads(Path(args.variants).read_text())
@@ -123,7 +126,7 @@ def main() -> None:
         results = pool.imap_unordered(_gate, tasks)
         for _ in tasks:
             try:
-                rec = results.next(timeout=max(1.0, deadline + 120 - time.time()))
+                rec = results.next(timeout=max(1.0, deadline + args.grace - time.time()))
             except (mp.TimeoutError, StopIteration):
                 break
             if rec is not None:

@@ -48,7 +48,8 @@ FERN_CMD = (
     "CMC_LPIPS_DIR=../shared/weights cmc bench llff --data ../shared/datasets/llff --scenes fern "
     "--out bench/{} --save-dir /tmp/runs"
 )
-# The `fast` preset now (the alpha entropy prior at 0.003), rerun the same day as the before runs.
+# The `fast` preset now (56 planes, with the settings chosen on fern's validation views), run the
+# same day as the before runs.
 FERN_AFTER = "view_quality_fern_now.json"
 SYN_AFTER = "view_quality_synthetic_now.json"
 # The preset before the view-quality work, rerun from a worktree of its commit on the day of the
@@ -250,7 +251,19 @@ CVC01_LABEL = (
     "beyond +0.12 dB, every scene better in both, near -0.04 dB (`cards` -0.13), LPIPS-vgg the same. At the "
     "size of the unit tests (84x63, 100 steps) it goes the other way: three tests that train the preset failed "
     "with it (the concentration prior's depth error, the hidden layers' beyond views, the factor's own near "
-    "views), so it waits until that difference is understood)"
+    "views), so it waited; adopted later with three other settings chosen on fern's validation views, last rows)"
+)
+PREV48_LABEL = (
+    "the previous `fast` (48 planes, softmin 0.2, cross-view colour 0.25, hidden layers at confidence 0.5), "
+    "rerun the same day as `fast` before (the same scores as the row of its adoption)"
+)
+NOHIDDEN56_LABEL = (
+    "the four settings chosen on fern's validation views with the hidden layers off (`fast` now: they no longer "
+    "paid; with them, the row above gated at 0.7, and fern's validation views within 0.0002 SSIM)"
+)
+P56_LABEL = (
+    "the previous `fast` with the four settings chosen on fern's validation views (`bench/explore_gpu.py`): "
+    "56 planes, softmin 0.3, cross-view colour 0.1, hidden layers gated at 0.7"
 )
 FERN_STEPS = [
     ("sweepnorm", "`fast` before, plane sweep with the new window normalisation"),
@@ -546,6 +559,8 @@ FERN_STEPS = [
         "`fast` now with the concentration prior at 0.003 instead of 0.01 (not adopted: +0.05 dB, SSIM +0.001, "
         "LPIPS-alex +0.001, LPIPS-vgg +0.001: noise; the synthetic set was not run)",
     ),
+    ("prev48", PREV48_LABEL),
+    ("p56combo", P56_LABEL),
 ]
 NOW_RERUN_LABEL = (
     "`fast` now, rerun the same day as `fast` before (the same scores as the row of its adoption; this "
@@ -689,6 +704,9 @@ VQ_ABLATION = [
     ("view_quality_synthetic_noentropy.json", NOENTROPY_LABEL),
     ("view_quality_synthetic_entropy003.json", ENTROPY003_LABEL),
     ("view_quality_synthetic_e003_cvc01.json", CVC01_LABEL),
+    ("view_quality_synthetic_prev48.json", PREV48_LABEL),
+    ("view_quality_synthetic_p56combo.json", P56_LABEL),
+    ("view_quality_synthetic_p56_nohidden.json", NOHIDDEN56_LABEL),
     (SYN_AFTER, NOW_RERUN_LABEL),
 ]
 
@@ -703,8 +721,6 @@ ABSENT_MEANS = {
     "model.pyramid.stereo_extend_border": False,
     "loss.lambda_alpha_entropy": 0.0,
     "model.pyramid.base_groups": 1,
-    "model.pyramid.stereo_hidden_radius": 0.0,
-    "model.pyramid.stereo_hidden_confidence": 0.0,
     "loss.cross_view_colour": 1.0,
     "model.pyramid.stereo_hidden_colour_everywhere": False,
     "model.pyramid.stereo_cost": "ad",
@@ -743,6 +759,8 @@ REMOVED_OPTIONS = {
     "fine_alpha_from": 0.0,
     "ssim_patches": 0,
     "model.plane_stagger": False,
+    "model.pyramid.stereo_hidden_radius": 0.0,
+    "model.pyramid.stereo_hidden_confidence": 0.0,
 }
 
 
@@ -782,7 +800,8 @@ def view_quality_section() -> list[str]:
     fb0, fb, fa = load("view_quality_fern_before.json"), load(FERN_BEFORE), load(FERN_AFTER)
     if fb and fa:
         out += [
-            "LLFF fern, RegNeRF 3-view protocol (test views 0, 8, 16), baked renderer, all 48 planes.\n",
+            "LLFF fern, RegNeRF 3-view protocol (test views 0, 8, 16), baked renderer, every plane (before: "
+            f"{fb['scenes'][0]['num_planes_baked']}, after: {fa['scenes'][0]['num_planes_baked']}).\n",
             "Before: "
             + header(fb, BEFORE_CMD.format("llff --data /work/shared/datasets/llff --scenes fern", FERN_BEFORE)),
             "After: " + header(fa, FERN_CMD.format(FERN_AFTER)),

@@ -123,15 +123,9 @@ class PyramidFieldConfig:
     stereo_supersample: int = 1  # the sweep runs on a grid this many times finer than alpha's finest level
     # ... as long as that grid holds at most this many texels (cmc.planesweep.affordable_supersample)
     stereo_max_texels: int = 2**19
-    # > 0: behind a foreground outline, the farther surface within this fraction of the plane
-    # width continues as a hidden layer, in alpha and base colour (cmc.planesweep.layered_alpha,
-    # cmc.model.hidden_layer_colours); 0: off. Only where the sweep's most probable plane has a
-    # probability above stereo_hidden_confidence, at the texel and at the farther surface.
-    stereo_hidden_radius: float = 0.0
-    stereo_hidden_confidence: float = 0.0
     # True: the base colours of the groups behind each texel's visible surface (the sweep's most
-    # probable plane) start as the background continued from nearby (cmc.model.hidden_layer_colours)
-    # at every texel; False: only at the texels given a hidden layer (none when that radius is 0).
+    # probable plane) start as the background continued from nearby (cmc.model.hidden_layer_colours);
+    # False: every group starts as the reference photo.
     stereo_hidden_colour_everywhere: bool = False
 
 

@@ -14,7 +14,7 @@ from cmc.datasets import Scene
 from cmc.errors import ConfigError
 from cmc.fields import MLPField, MPIField, PyramidFieldConfig, PyramidPlaneField, plane_group_bounds
 from cmc.geometry import content_plane_depths, texel_grid
-from cmc.planesweep import affordable_supersample, alpha_from_weights, layered_alpha, plane_sweep_weights
+from cmc.planesweep import affordable_supersample, alpha_from_weights, plane_sweep_weights
 from cmc.rendering import ImageOutput, MPIFrame, render_image
 
 
@@ -190,18 +190,9 @@ class CMCModel(nn.Module):
                 init_alpha, rgb = None, padded_reference(scene.images[i], fr)
                 if cfg.pyramid.stereo_init:
                     probs = sweep_probabilities(self.frames, images, i, cfg.pyramid)
-                    w = probs.shape[-1]
-                    if cfg.pyramid.stereo_hidden_radius > 0:
-                        radius = max(1, round(cfg.pyramid.stereo_hidden_radius * w))
-                        init_alpha, front, edge = layered_alpha(probs, radius, cfg.pyramid.stereo_hidden_confidence)
-                    else:
-                        init_alpha, front, edge = alpha_from_weights(probs), probs.argmax(0), None
+                    init_alpha = alpha_from_weights(probs)
                     if cfg.pyramid.stereo_hidden_colour_everywhere:
-                        rgb = hidden_layer_colours(rgb, front, cfg.num_planes, cfg.pyramid.base_groups)
-                    elif edge is not None:  # elsewhere the photo stays on every plane
-                        rgb = hidden_layer_colours(
-                            rgb, torch.where(edge, front, cfg.num_planes), cfg.num_planes, cfg.pyramid.base_groups
-                        )
+                        rgb = hidden_layer_colours(rgb, probs.argmax(0), cfg.num_planes, cfg.pyramid.base_groups)
                 fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha))
             else:
                 raise ValueError(f"unknown field type {cfg.field_type!r}")

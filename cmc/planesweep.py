@@ -239,36 +239,6 @@ def alpha_from_weights(weights: torch.Tensor, lo: float = 0.01, hi: float = 0.99
     return (weights / remaining.clamp_min(1e-6)).clamp(lo, hi)
 
 
-def layered_alpha(
-    weights: torch.Tensor, radius: int, confidence: float = 0.0
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Alphas from plane-sweep probabilities ``[D, h, w]`` with a hidden background layer behind
-    foreground edges, and the visible plane of each texel.
-
-    :func:`alpha_from_weights` leaves whatever alpha the cost curve gives behind the visible
-    surface, where the reference photo cannot tell; a view beside the reference then sees, past
-    a foreground outline, the far plane holding the photo's foreground colour (a smear). Here a
-    texel whose visible plane (the most probable) has probability above ``confidence`` and whose
-    neighbourhood (``radius`` texels) holds a farther visible surface, also confidently placed,
-    gets that surface continued behind it: alpha 0.99 on the farthest such plane of the
-    neighbourhood (after a 3x3 median against lone outliers), 0.01 on the other planes behind
-    its own surface. Returns (alpha [D, h, w], visible plane index [h, w] (0 = nearest), mask
-    [h, w] of the texels given a hidden layer).
-    """
-    alpha = alpha_from_weights(weights)
-    best, front = weights.max(0)
-    sure = best > confidence
-    smooth = F.pad(front[None, None].float(), (1, 1, 1, 1), mode="replicate")
-    smooth = F.unfold(smooth, 3).median(1).values.reshape(front.shape)
-    smooth = torch.where(sure, smooth, torch.full_like(smooth, -1.0))
-    back = F.max_pool2d(smooth[None, None], 2 * radius + 1, stride=1, padding=radius)[0, 0].long()
-    edge = sure & (back > front + 1)
-    k = torch.arange(weights.shape[0], device=weights.device)[:, None, None]
-    hidden = (k > front) & edge  # planes behind the surface of an edge texel
-    alpha = torch.where(hidden, torch.where(k == back, 0.99, 0.01), alpha)
-    return alpha, front, edge
-
-
 def semi_global(cost: torch.Tensor, p1: float, p2: float) -> torch.Tensor:
     """Semi-global aggregation (Hirschmüller 2008) of a plane-sweep cost [D, h, w] along the four
     axis directions -> [D, h, w], the mean of the four path costs.

@@ -99,7 +99,7 @@ class Settings(BaseSettings):
     render_cache_bytes: int = Field(
         2 << 30,
         ge=1,
-        description="memory for loaded baked scenes (8-bit textures: about 150 MB each at 504x378 with 3 x 48 "
+        description="memory for loaded baked scenes (8-bit textures: about 195 MB each at 504x378 with 3 x 56 "
         "planes); the least recently used are dropped beyond it, never the one just loaded",
     )
     render_concurrency: int = Field(2, ge=1, description="renders computed at once (others wait)")

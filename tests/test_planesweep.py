@@ -13,7 +13,6 @@ from cmc.planesweep import (
     affordable_supersample,
     alpha_from_weights,
     census_distance,
-    layered_alpha,
     plane_sweep_weights,
     semi_global,
 )
@@ -162,29 +161,6 @@ def _square_on_wall(D: int = 12, size: int = 40, front: int = 2, back: int = 9):
     return torch.nn.functional.one_hot(k, D).permute(2, 0, 1).float() * 0.97 + 0.03 / D, k
 
 
-def test_layered_alpha_continues_the_wall_behind_the_square_edges():
-    """Within the radius of the square's outline the wall continues behind it (alpha 0.99 on the
-    wall's plane, 0.01 on the other hidden planes); deep inside the square and on the wall itself
-    the alphas are those of alpha_from_weights; the reference view's composite barely changes."""
-    probs, k = _square_on_wall()
-    plain = alpha_from_weights(probs)
-    alpha, front, edge = layered_alpha(probs, radius=4)
-    assert torch.equal(front, k)
-    assert edge[12, 11] and not edge[20, 20] and not edge[2, 2]
-    y, x = 12, 11  # inside the square, 1 texel from its outline
-    assert alpha[9, y, x] == 0.99
-    assert torch.all(alpha[3:9, y, x] == 0.01) and torch.all(alpha[10:, y, x] == 0.01)
-    assert torch.equal(alpha[:, 20, 20], plain[:, 20, 20])  # 10 texels inside: beyond the radius
-    assert torch.equal(alpha[:, 2, 2], plain[:, 2, 2])  # the wall
-    assert torch.equal(alpha[:3, 12, 11], plain[:3, 12, 11])  # the square itself and what is before it
-
-    # The reference view sees the square: its composite weights stay within 0.02 of the sweep's.
-    def weights(a: torch.Tensor) -> torch.Tensor:
-        return a * torch.cumprod(torch.cat([torch.ones_like(a[:1]), 1 - a[:-1]]), 0)
-
-    assert (weights(alpha) - weights(plain)).abs().max() < 0.02
-
-
 def test_hidden_layer_colours_fill_the_wall_behind_the_square_with_wall_colour():
     """The base colour of the wall's planes behind the square is the wall's colour, not the
     square's; the group of the square's planes keeps the photo."""
@@ -198,21 +174,6 @@ def test_hidden_layer_colours_fill_the_wall_behind_the_square_with_wall_colour()
     for g in (1, 2):  # behind the square: the wall's blue continued
         assert bases[g, 2, 40, 40] > 0.99 and bases[g, 0, 40, 40] < 0.01
         assert torch.equal(bases[g, :, 5, 5], rgb[:, 5, 5])
-
-
-def test_layered_alpha_leaves_unsure_texels_alone():
-    """With a confidence threshold, a texel whose sweep is unsure (flat probabilities) gets no
-    hidden layer, nor do its neighbours from it: only confidently placed surfaces continue."""
-    probs, _ = _square_on_wall()
-    probs[:, 12, 11] = 1 / 12  # unsure, at the square's edge
-    probs[:, 2, 2] = 0
-    probs[11, 2, 2] = 1  # a lone far outlier in the wall: the 3x3 median drops it
-    plain = alpha_from_weights(probs)
-    alpha, _, edge = layered_alpha(probs, radius=4, confidence=0.5)
-    assert not edge[12, 11] and torch.equal(alpha[:, 12, 11], plain[:, 12, 11])
-    assert edge[12, 12] and alpha[9, 12, 12] == 0.99  # its sure neighbour still gets the wall
-    assert not edge[4, 4]  # the outlier gives the wall near it no layer at plane 11
-    assert torch.all(alpha[11, 10:14, 10:14][edge[10:14, 10:14]] == 0.01)
 
 
 def test_census_distance_ignores_gain_and_offset_but_not_a_shift():

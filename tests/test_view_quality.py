@@ -7,7 +7,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 
 from cmc.cameras import pixel_rays
 from cmc.config import preset_config, with_settings
@@ -132,8 +131,11 @@ def _planes_for_90_percent(trainer: Trainer) -> float:
 
 
 def test_distortion_prior_concentrates_opacity():
-    """Trained with the prior, fewer planes carry 90 % of each ray's weight (from a foggy start:
-    plane-sweep prior at a high temperature), and the depth is no worse."""
+    """From a foggy start (plane-sweep prior at a high temperature), training with the prior at the
+    preset's weight leaves fewer planes carrying 90 % of each ray's weight and a better depth;
+    five times that weight concentrates further (at 60 steps it also settles some rays on a wrong
+    plane: depth error 0.025 without the prior, 0.015 at 0.01, 0.042 at 0.05 when this was
+    written; 0.05 is for the concentration alone)."""
     scene = synthetic_scene(3, W, H)
     base = preset_config("fast", steps=60, rays_per_view=512, unseen_rays=256)
     # The alpha entropy prior off: it concentrates opacity too, and this measures the distortion's.
@@ -144,16 +146,17 @@ def test_distortion_prior_concentrates_opacity():
         "model.pyramid.stereo_temperature=0.05",
     ]
     base = with_settings(base, ["model.num_planes=16", *foggy, "loss.lambda_alpha_entropy=0"])
+    preset = preset_config("fast").loss.lambda_distortion
     results = {}
-    for lam in (0.0, 0.05):
+    for lam in (0.0, preset, 5 * preset):
         trainer = Trainer(scene, replace(base, loss=replace(base.loss, lambda_distortion=lam)))
         trainer.fit()
         out = trainer.model.render(scene.cameras.K[0], scene.cameras.world_from_cam[0], W, H)
         depth_err = float(np.median(np.abs(out.depth.numpy() - scene.depths[0]) / scene.depths[0]))
         results[lam] = (_planes_for_90_percent(trainer), depth_err)
-    (planes0, err0), (planes1, err1) = results[0.0], results[0.05]
-    assert planes1 < 0.7 * planes0, results
-    assert err1 <= err0 + 0.01, results
+    (planes0, err0), (planes1, err1), (planes5, _) = results.values()
+    assert planes1 < 0.93 * planes0 and err1 < 0.8 * err0, results  # 5.10 -> 4.42 planes, 0.025 -> 0.015
+    assert planes5 < 0.7 * planes0, results  # 3.15 planes
 
 
 def test_with_settings_parses_and_rejects():
@@ -283,14 +286,9 @@ def test_a_base_colour_per_plane_group_gives_hidden_surfaces_their_own_texture()
     base = preset_config("fast", steps=200, rays_per_view=512, unseen_rays=256)
     errors = {}
     for groups in (1, 4):
-        # Without the hidden layers and the background colour behind every surface, which also
-        # start these surfaces with the background's colour
-        # (then 0.037 -> 0.030): this checks what the groups alone give.
-        settings = [
-            f"model.pyramid.base_groups={groups}",
-            "model.pyramid.stereo_hidden_radius=0",
-            "model.pyramid.stereo_hidden_colour_everywhere=false",
-        ]
+        # Without the background colour behind every surface, which also starts these surfaces
+        # with the background's colour (then 0.037 -> 0.030): this checks what the groups alone give.
+        settings = [f"model.pyramid.base_groups={groups}", "model.pyramid.stereo_hidden_colour_everywhere=false"]
         cfg = with_settings(base, ["model.num_planes=24", *settings])
         trainer = Trainer(split.train, cfg)
         trainer.fit()
@@ -298,54 +296,11 @@ def test_a_base_colour_per_plane_group_gives_hidden_surfaces_their_own_texture()
     assert errors[4] < 0.8 * errors[1], errors  # 0.062 -> 0.047 when this was written
 
 
-def test_hidden_layers_put_the_wall_behind_the_outlines():
-    """``posts``: a view beside an input sees, past a post's or the card's outline, wall that the
-    input's photo shows only as post or card. Without hidden layers the MPI holds there whatever
-    the plane sweep's cost curve left behind the occluder (the photo's occluder colour on far
-    planes: a smear); with the wall continued behind confidently placed outlines
-    (``model.pyramid.stereo_hidden_radius``, ``stereo_hidden_confidence``) the wall next to the
-    outlines has its depth and the halfway and beyond views are better (84x63, 100 steps; when
-    this was written, with the colour-difference sweep: depth error in that band 0.071 -> 0.045
-    halfway, 0.081 -> 0.053 beyond, PSNR +0.58 dB halfway, +0.48 dB beyond, +0.17 dB near; with
-    the AD-Census sweep, which starts better without them: 0.055 -> 0.040 halfway, 0.063 -> 0.050
-    beyond, PSNR +0.17 dB, +0.19 dB, near the same; with that sweep on the 2x grid: 0.047 ->
-    0.037, 0.059 -> 0.051, PSNR +0.11 dB, +0.10 dB, near +0.01 dB; with the semi-global
-    aggregation of ``fast`` now: 0.044 -> 0.035, 0.052 -> 0.044, PSNR +0.05 dB, +0.09 dB, near
-    -0.03 dB: the better the start, the less the layers add)."""
-    W2, H2 = 84, 63
-    split = wide_baseline_split("posts", W2, H2)
-    base = preset_config("fast", steps=100, rays_per_view=512, unseen_rays=256)
-    cams = split.test.cameras
-    scores = {}
-    for radius in (0.0, 0.05):
-        settings = [
-            f"model.pyramid.stereo_hidden_radius={radius}",
-            "model.pyramid.stereo_hidden_confidence=0.5",
-            "model.pyramid.stereo_hidden_colour_everywhere=false",  # what the layers alone give
-        ]
-        trainer = Trainer(split.train, with_settings(base, ["model.num_planes=24", *settings]))
-        trainer.fit()
-        for k, kind in enumerate(split.test_kinds):
-            with torch.no_grad():
-                out = trainer.model.render(cams.K[k], cams.world_from_cam[k], W2, H2)
-            true = split.test.depths[k]
-            wall = torch.as_tensor(true > 0.95 * true.max())
-            # The wall within 5 pixels of an occluder's outline in this view.
-            band = (wall & (F.max_pool2d((~wall).float()[None, None], 11, 1, 5)[0, 0] > 0)).numpy()
-            err = np.abs(out.depth.numpy() - true)[band] / true[band]
-            scores.setdefault((radius, kind), []).append((psnr(out.rgb.numpy(), split.test.images[k]), err.mean()))
-    mean = {key: np.mean(v, 0) for key, v in scores.items()}
-    for kind in ("halfway", "beyond"):
-        (psnr0, err0), (psnr1, err1) = mean[(0.0, kind)], mean[(0.05, kind)]
-        assert psnr1 > psnr0 + 0.02 and err1 < 0.9 * err0, (kind, mean)
-    assert mean[(0.05, "near")][0] > mean[(0.0, "near")][0] - 0.1, mean  # near views not worse
-
-
 def test_background_colour_continues_behind_every_surface():
     """``cards``: the groups of planes behind a texel's visible surface start with the background
     continued from nearby (:func:`cmc.model.hidden_layer_colours`) at every texel
-    (``model.pyramid.stereo_hidden_colour_everywhere``), not only where a hidden layer is added
-    behind a confidently placed outline. Where a card hides the wall in the reference photo, the
+    (``model.pyramid.stereo_hidden_colour_everywhere``), instead of the photo's colour, the
+    card's where it hides the wall. Where a card hides the wall in the reference photo, the
     wall's plane then holds wall colours, not the card's, at the start and still after training
     (error against the wall the other views see there; when this was written, 84x63: 0.233 ->
     0.145 at the start, 0.074 -> 0.066 after 100 steps; with the planes crowded at the scene's
@@ -372,7 +327,9 @@ def test_cross_view_colour_factor_keeps_each_mpi_on_its_photo():
     drawn mostly from the nearest MPI, are better; the halfway views do not suffer (when this was
     written, ``posts`` at 84x63, 100 steps, factor 1 -> 0.25: own photo +2.0 to +2.2 dB, near views
     26.08 -> 26.51 dB, halfway 24.82 -> 24.75 dB; with the alpha entropy prior at 0.003, near
-    26.86 -> 27.04 dB, halfway 25.41 -> 25.36 dB)."""
+    26.86 -> 27.04 dB, halfway 25.41 -> 25.36 dB). ``fast`` uses 0.1, chosen at full size (fern's
+    validation views, the synthetic set at 252x189 and 400 steps); at this size and 100 steps
+    0.1 gives up the near views' gain (26.83 dB), so the test measures the mechanism at 0.25."""
     W2, H2 = 84, 63
     split = wide_baseline_split("posts", W2, H2)
     base = preset_config("fast", steps=100, rays_per_view=512, unseen_rays=256)
