@@ -62,13 +62,15 @@ BEFORE_CMD = (
     "--out /work/main/bench/{} --save-dir /tmp/runs/before  (the same day as the after run)"
 )
 AFTER_NOTE = (
-    "Before and after ran one after the other on the same day, each with the CPU to itself, on two "
-    "threads; most earlier rows of the tables below ran on other days, some on one thread while other "
-    "work used the CPU, so compare train seconds within a session only (this host ran fern's `fast` in "
-    "300 s on the day of these runs, in 220 s two sessions earlier and about 3x slower the session "
-    "between). Training is deterministic: every rerun scored exactly as the first run of the same preset "
-    "(the before runs as `view_quality_*_before.json` of 2026-11-23, the after runs as those of the "
-    "lighter alpha entropy prior, `view_quality_*_entropy003.json`). The after runs say `863e1e4+dirty`: "
+    "Before and after ran on the same day (2026-11-26, the after runs in a later session than the before "
+    "runs), each with the CPU to itself, on two threads; most earlier rows of the tables below ran on other "
+    "days, some on one thread while other work used the CPU, so compare train seconds within a day only "
+    "(this host ran fern's previous `fast`, 48 planes, in 300 s that day, the new one in 292 s; in 220 s two "
+    "sessions earlier and about 3x slower the session between). Training is deterministic: every rerun "
+    "scored exactly as the first run of the same preset (the before runs as `view_quality_*_before.json` of "
+    "2026-11-23; the synthetic after run at 8eb85d1 as `view_quality_synthetic_p56_nohidden.json`, fern's test "
+    "views as the CPU validation run of the same settings, `bench/explore_cpu_nohidden.jsonl`). The previous "
+    "preset's rows (`prev48`) say `863e1e4+dirty`: "
     "the code of 863e1e4, with only bench/ files edited. Earlier rows: the semi-global row ran from a "
     "worktree of e6ee3da with the semi-global aggregation of adc8b26 added, uncommitted then (the code "
     "the adoption commit holds). The synthetic run of the 2x sweep grid and the first semi-global row of "
@@ -259,7 +261,8 @@ PREV48_LABEL = (
 )
 NOHIDDEN56_LABEL = (
     "the four settings chosen on fern's validation views with the hidden layers off (`fast` now: they no longer "
-    "paid; with them, the row above gated at 0.7, and fern's validation views within 0.0002 SSIM)"
+    "paid; with them, the row above gated at 0.7, and fern's validation views within 0.0002 SSIM; its report "
+    "still records that gate, inert without the layers)"
 )
 P56_LABEL = (
     "the previous `fast` with the four settings chosen on fern's validation views (`bench/explore_gpu.py`): "
@@ -1117,6 +1120,17 @@ def gpu_sweep_section() -> list[str]:
             f"| {name} | {flags} | {v['psnr']:.2f} | {v['ssim']:.4f} | {v['ssim'] - base['val']['ssim']:+.4f} "
             f"| {t['psnr']:.2f} | {t['ssim']:.4f} | {t['ssim'] - base['test']['ssim']:+.4f} |"
         )
+    (cpu,) = [json.loads(line) for line in (HERE / "explore_cpu_nohidden.jsonl").read_text().splitlines()]
+    best = fern["planes56_t03_cvc01_hc07"]
+    cpu_line = (
+        "Then on the CPU (`PYTHONPATH=. python bench/explore_gpu.py bench/explore_cpu_nohidden_variants.json "
+        "/tmp/cpu_val --device cpu --workers 1 --seconds 60 --grace 900`, the 2-core box, "
+        f"{cpu['date']}, {cpu['git_commit']}: the preset of that tree was `planes56_t03_cvc01_hc07`), the same "
+        f"without the hidden layers ({' '.join(f'`{f}`' for f in cpu['settings'])}): validation "
+        f"{cpu['val']['psnr']:.3f} / {cpu['val']['ssim']:.4f} against {best['val']['psnr']:.3f} / "
+        f"{best['val']['ssim']:.4f}, test {cpu['test']['psnr']:.3f} / {cpu['test']['ssim']:.4f} against "
+        f"{best['test']['psnr']:.3f} / {best['test']['ssim']:.4f}: they did nothing, and went.\n"
+    )
     syn = [r for r in recs if r["scene"] != "fern" and "error" not in r]
     syn_rows = [
         f"| {r['variant']} | {r['scene']} | {r['halfway']['psnr']:.2f} | {r['near']['psnr']:.2f} "
@@ -1139,6 +1153,7 @@ def gpu_sweep_section() -> list[str]:
         "preset's row here: test 23.046 / 0.7416, the CPU's 23.05 / 0.742); train seconds are not in the "
         "table (seven trainings shared the GPU). Variants are `--set` flags against the `fast` of that commit.\n",
         "\n".join(rows) + "\n",
+        cpu_line,
         "Synthetic scenes in the same runs (what the deadline let finish; PSNR per kind of view):\n",
         "| variant | scene | halfway | near | beyond |",
         "|---|---|---|---|---|",
