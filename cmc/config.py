@@ -183,7 +183,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
         # gated at 0.7 instead of 0.5, which left them doing nothing (without them: fern validation
         # and the synthetic set within 0.02 dB), so they went. Validation SSIM 0.686 -> 0.700; fern
         # 23.05 / 0.742 / 0.213 -> 23.36 / 0.753 / 0.206 (PSNR / SSIM / LPIPS-vgg); synthetic halfway
-        # +0.15 dB, beyond +0.21, near -0.02 (`cards` -0.17, `slanted` +0.11); renders 1.2x slower.
+        # +0.15 dB, beyond +0.21, near -0.02 (`cards` -0.17, `slanted` +0.11); renders 1.2-1.3x slower.
         loss = LossConfig(
             lambda_ac=0.0,
             lambda_distortion=0.01,
