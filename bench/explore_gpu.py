@@ -27,28 +27,13 @@ from typing import Any
 import numpy as np
 
 
-def _fern_sets(data: str) -> tuple[Any, Any, Any]:
-    from cmc.datasets import Scene, cameras_from_llff, load_image, regnerf_split
-
-    d = Path(data)
-    pb = np.load(d / "poses_bounds.npy")
-    files = sorted((d / "images_8").glob("*.png")) or sorted((d / "images_8").glob("*.JPG"))
-    images = np.stack([load_image(p) for p in files])
-    cams, bounds = cameras_from_llff(pb, images.shape[2], images.shape[1])
-    nf = np.tile([bounds[:, 0].min() * 0.9, bounds[:, 1].max()], (len(pb), 1))
-    full = Scene(images, cams, nf, [p.stem for p in files])
-    train, test = regnerf_split(len(pb))
-    val = [i for i in range(len(pb)) if i not in train and i not in test]
-    return full.subset(train), full.subset(val), full.subset(test)
-
-
 def _run(task: tuple[str, list[str], str, dict[str, Any]]) -> dict[str, Any]:
     import torch
 
     from cmc.baking import BakedScene, bake
     from cmc.bench import report_header
     from cmc.config import preset_config, with_settings
-    from cmc.datasets import wide_baseline_split
+    from cmc.datasets import load_llff, wide_baseline_split
     from cmc.metrics import psnr, ssim
     from cmc.training import Trainer
 
@@ -59,8 +44,8 @@ def _run(task: tuple[str, list[str], str, dict[str, Any]]) -> dict[str, Any]:
     if opts.get("steps"):
         cfg = with_settings(cfg, [f"steps={opts['steps']}"])
     if scene == "fern":
-        train, *scored = _fern_sets(opts["data"])
-        kinds = ["val", "test"]
+        split = load_llff(opts["data"])
+        train, scored, kinds = split.train, [split.val, split.test], ["val", "test"]
     else:
         split = wide_baseline_split(scene)
         train, scored, kinds = split.train, [split.test], ["synthetic"]

@@ -155,12 +155,16 @@ def save_scene_folder(scene: Scene, folder: str | Path) -> Path:
 
 @dataclass
 class LLFFSplit:
-    """The RegNeRF few-shot protocol: ``train`` (evenly chosen) and ``test`` (index % 8 == 0)."""
+    """The RegNeRF few-shot protocol: ``train`` (evenly chosen) and ``test`` (index % 8 == 0), and
+    ``val``, the images that are neither (views that may choose settings; the test views may not;
+    None when no image is left)."""
 
     train: Scene
     test: Scene
     train_ids: list[int]
     test_ids: list[int]
+    val: Scene | None
+    val_ids: list[int]
 
 
 def regnerf_split(num_images: int, num_train: int = 3) -> tuple[list[int], list[int]]:
@@ -191,7 +195,8 @@ def load_llff(scene_dir: str | Path, images_subdir: str = "images_8", num_train:
     nf = np.tile([bounds[:, 0].min() * 0.9, bounds[:, 1].max()], (len(pb), 1))
     full = Scene(images, cams, nf, [p.name for p in files])
     train, test = regnerf_split(len(pb), num_train)
-    return LLFFSplit(full.subset(train), full.subset(test), train, test)
+    val = [i for i in range(len(pb)) if i not in train and i not in test]
+    return LLFFSplit(full.subset(train), full.subset(test), train, test, full.subset(val) if val else None, val)
 
 
 # --- Synthetic layered scene ----------------------------------------------------------------

@@ -28,6 +28,7 @@ from cmc.cameras import (
     load_camera_file,
     save_camera_file,
 )
+from cmc.datasets import load_llff
 
 FERN_POSES = SHARED_DIR / "datasets" / "llff" / "fern" / "poses_bounds.npy"
 
@@ -157,6 +158,20 @@ def test_llff_round_trip_real_fern() -> None:
     ahead = cams.centers.mean(0) + mean_z * bounds[:, 0].min() * 1.5
     _, depth = cams.project(ahead[None])
     assert (depth > 0).all()
+
+
+@pytest.mark.skipif(not FERN_POSES.is_file(), reason=f"{FERN_POSES} not found (set CMC_SHARED_DIR)")
+def test_llff_split_holds_train_test_and_validation_views() -> None:
+    """RegNeRF's split of fern (20 images): test every 8th, 3 training views evenly from the rest,
+    and the validation views (neither) that may choose settings; each image in one set."""
+    split = load_llff(FERN_POSES.parent)
+    assert split.test_ids == [0, 8, 16] and split.train_ids == [1, 10, 19]
+    assert split.val_ids == [2, 3, 4, 5, 6, 7, 9, 11, 12, 13, 14, 15, 17, 18]
+    assert split.val is not None and len(split.val) == 14 and split.val.names[1] == "image003.png"
+    every = load_llff(FERN_POSES.parent, num_train=17)  # every image but the test views trains
+    assert every.val is None
+    np.testing.assert_array_equal(split.val.cameras.world_from_cam[1], every.train.cameras.world_from_cam[2])
+    np.testing.assert_array_equal(split.val.images[1], every.train.images[2])
 
 
 def test_llff_rejects_bad_shape() -> None:
