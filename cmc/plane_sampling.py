@@ -27,6 +27,8 @@ import numba
 import numpy as np
 import torch
 
+from cmc import kernel_cache
+
 # Parallel loops on OpenMP first: torch's CPU ops run on the same OpenMP threads in this process,
 # so the kernels get the threads that torch's ops leave spinning, instead of competing with them
 # (a pool of other threads ran the kernels 1.6x slower on two cores).
@@ -45,6 +47,7 @@ def _chunks(plane_texture: np.ndarray, parts: int) -> np.ndarray:
     return np.array([starts[i * len(starts) // n] for i in range(n)] + [D], np.int64)
 
 
+kernel_cache.prepare()  # before the first kernel: numba needs a writable cache folder to define one
 _JIT = dict(nogil=True, cache=True, boundscheck=False, error_model="numpy", fastmath={"contract"})
 
 
@@ -273,9 +276,8 @@ def sample_planes(
 
 
 def warm_up() -> None:
-    """Compile the kernels now (numba caches them on disk beside this module when that is
-    writable), so the first training step of a fresh process does not pay the compile; the
-    Dockerfiles call it."""
+    """Compile the kernels now into numba's on-disk cache (:mod:`cmc.kernel_cache`), so the first
+    training step of a fresh process does not pay the compile; the Dockerfiles call it."""
     tex = torch.zeros(2, 4, 3, 3, requires_grad=True)
     for mode in INTERPOLATIONS:
         sample_planes(torch.zeros(2, 5, 2), [0, 1], [tex], mode).sum().backward()

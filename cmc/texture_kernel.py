@@ -65,6 +65,7 @@ import numba
 import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros  # numba's count of trailing zero bits (tzcnt); numba is pinned
 
+from cmc import kernel_cache
 from cmc.plane_sampling import INTERPOLATIONS, check_interpolation, cubic_weights
 
 TILE_SHIFT = 3
@@ -72,6 +73,7 @@ TILE = 1 << TILE_SHIFT  # texels per occupancy tile side
 ROWS = 8  # target rows per band (the unit of work a thread takes)
 COLS = 8  # target columns per block (rays that skip a plane's empty region together)
 assert ROWS * COLS <= 64, "a block's live rays are the bits of one 64-bit word"
+kernel_cache.prepare()  # before the first kernel: numba needs a writable cache folder to define one
 
 
 @dataclass(frozen=True)
@@ -532,8 +534,8 @@ def render(
 
 
 def warm_up() -> None:
-    """Compile the kernel now (numba caches it on disk beside this module when that is writable),
-    so the first render of a fresh process does not pay the compile; the Dockerfiles call it."""
+    """Compile the kernel now into numba's on-disk cache (:mod:`cmc.kernel_cache`), so the first
+    render of a fresh process does not pay the compile; the Dockerfiles call it."""
     K = np.array([[4.0, 0, 2], [0, 4.0, 2], [0, 0, 1]])
     packed = PackedTextures.pack([np.full((2, 4, 4, 4), 255, dtype=np.uint8)])
     g = MPIGeometry(K, np.eye(4), np.array([1.0, 2.0]), 4, 4, 1.0)

@@ -1,0 +1,82 @@
+"""A writable on-disk cache for the compiled numba kernels (:mod:`cmc.plane_sampling`,
+:mod:`cmc.texture_kernel`), found before the first kernel is defined.
+
+numba looks for a writable cache folder the moment a ``cache=True`` kernel is defined (at import)
+and raises ``RuntimeError: cannot cache function ...`` when it finds none. It tries
+``NUMBA_CACHE_DIR``, then ``__pycache__`` beside the module, then the user's cache folder
+(``~/.cache/numba``). An installed package that is read-only for the user running it (another
+user's environment, a container's read-only root filesystem, a read-only ``$HOME``) has none of
+them; :func:`prepare` then points numba at a folder of this user's in the temporary directory.
+
+Kernels compiled in advance: ``CMC_KERNEL_CACHE_SEED`` names a cache folder made by
+:func:`cmc.texture_kernel.warm_up` and :func:`cmc.plane_sampling.warm_up` run with
+``NUMBA_CACHE_DIR`` pointing at it (the Docker images do this at build time). It may be read-only:
+:func:`prepare` copies its files into the cache folder in use, where they are missing, so a fresh
+process loads the kernels instead of compiling them (about 7 s on 2 cores). numba keys each entry
+by the source file's path and content hash and by the CPU it was compiled for: a seed compiled on
+another CPU model is ignored and the kernels compile once into the writable folder.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numba
+from numba.misc.appdirs import AppDirs
+
+SEED_ENV = "CMC_KERNEL_CACHE_SEED"
+
+
+def _writable(folder: Path) -> bool:
+    """Whether ``folder`` can be made and written by this process (numba's own test)."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=folder).close()
+    except OSError:
+        return False
+    return True
+
+
+def prepare() -> Path:
+    """Make sure numba has a writable cache folder for the kernels of this package, seeded from
+    ``CMC_KERNEL_CACHE_SEED`` when that is set (it needs ``NUMBA_CACHE_DIR``); returns the folder.
+
+    Idempotent and safe in concurrent processes: each seed file is copied under a temporary name
+    and renamed, the index files (``*.nbi``) after the data files (``*.nbc``) they point to."""
+    seed = os.environ.get(SEED_ENV)
+    if numba.config.CACHE_DIR:
+        folder = Path(numba.config.CACHE_DIR)
+        if not _writable(folder):
+            raise RuntimeError(f"NUMBA_CACHE_DIR={folder} is not a writable folder: the compiled kernels need one")
+    elif seed:
+        raise RuntimeError(f"{SEED_ENV} is set without NUMBA_CACHE_DIR (the folder to copy the seed into)")
+    else:
+        for folder in (Path(__file__).resolve().parent / "__pycache__", Path(AppDirs("numba", False).user_cache_dir)):
+            if _writable(folder):
+                return folder
+        folder = Path(tempfile.gettempdir()) / f"cmc-numba-cache-{os.getuid()}"
+        if not _writable(folder):
+            raise RuntimeError(f"no writable folder for the compiled kernels (tried {folder}): set NUMBA_CACHE_DIR")
+        numba.config.CACHE_DIR = str(folder)
+    if seed:
+        _copy_missing(Path(seed), folder)
+    return folder
+
+
+def _copy_missing(seed: Path, folder: Path) -> None:
+    """Copy the files of the cache folder ``seed`` that ``folder`` lacks, data before indexes."""
+    if not seed.is_dir():
+        raise RuntimeError(f"{SEED_ENV}={seed} is not a folder")
+    files = sorted((p for p in seed.rglob("*") if p.is_file()), key=lambda p: p.suffix == ".nbi")
+    for src in files:
+        dst = folder / src.relative_to(seed)
+        if dst.exists():
+            continue
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=dst.parent, prefix=".seed-")
+        os.close(fd)
+        shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
