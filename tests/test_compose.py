@@ -35,6 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"
 ENV_EXAMPLE = ROOT / ".env.example"
 DOCKERFILES = {"cpu": ROOT / "docker" / "Dockerfile", "gpu": ROOT / "docker" / "Dockerfile.gpu"}
+INSTALL_SCRIPT = ROOT / "docker" / "install-service.sh"
 APP_SERVICES = ("api", "worker-cpu", "worker-gpu", "worker-webhooks")
 SECRETS = {
     "CMC_API_KEYS": "test-key-1,test-key-2",
@@ -140,6 +141,14 @@ def environment(service: dict[str, Any]) -> dict[str, str]:
 def command(service: dict[str, Any]) -> list[str]:
     cmd = service["command"]
     return shlex.split(cmd) if isinstance(cmd, str) else [str(c) for c in cmd]
+
+
+def duration_s(text: str) -> float:
+    """Seconds of a compose duration such as ``30s``, ``1m30s`` or ``500ms``."""
+    units = {"h": 3600.0, "m": 60.0, "s": 1.0, "ms": 0.001}
+    parts = re.findall(r"(\d+(?:\.\d+)?)(ms|h|m|s)", text)
+    assert parts and "".join(n + u for n, u in parts) == text, text
+    return sum(float(n) * units[u] for n, u in parts)
 
 
 def option(cmd: list[str], *names: str) -> list[str]:
@@ -280,6 +289,12 @@ def test_api_command_names_a_factory(services: dict[str, Any]) -> None:
     published = [str(p).rsplit(":", 1)[-1] for p in services["api"]["ports"]]
     assert published == port, "the published container port is not the one uvicorn listens on"
     assert f"127.0.0.1:{port[0]}/readyz" in healthcheck_shell(services["api"])
+    # a stop cancels requests still running (what they staged is removed: test_service_integration)
+    # before Docker's SIGKILL would leave it behind
+    graceful = option(cmd, "--timeout-graceful-shutdown")
+    assert graceful and float(graceful[0]) + 5 <= duration_s(services["api"].get("stop_grace_period", "10s"))
+    cmd_in_image = json.loads(next(r for w, r in dockerfile_instructions(DOCKERFILES["cpu"]) if w == "CMD"))
+    assert cmd_in_image == cmd, "the CPU image's default command is the API's"
 
 
 @pytest.mark.parametrize("name,queue_field", [("worker-cpu", "cpu_queue"), ("worker-gpu", "gpu_queue")])
@@ -428,10 +443,10 @@ def test_artifacts_in_the_bucket_not_a_shared_volume(compose: dict[str, Any], se
     published = [p.rsplit(":", 2) for p in minio["ports"]]
     assert [(int(host_port), int(port)) for _, host_port, port in published] == [(urlsplit(public).port, 9000)]
     # a new volume takes the owner of the image's folder: the images must make /data theirs
-    for path in DOCKERFILES.values():
-        runs = " ".join(rest for ins, rest in dockerfile_instructions(path) if ins == "RUN")
-        assert re.search(r"mkdir -p /data\b", runs), f"{path.name} does not create /data"
-        assert re.search(r"chown \S+ /data\b", runs), f"{path.name} does not chown /data"
+    # (both run docker/install-service.sh: test_image_runs_under_a_read_only_root)
+    script = INSTALL_SCRIPT.read_text()
+    assert re.search(r"mkdir -p /data\b", script), f"{INSTALL_SCRIPT.name} does not create /data"
+    assert re.search(r"chown \S+ /data\b", script), f"{INSTALL_SCRIPT.name} does not chown /data"
 
 
 def test_api_and_workers_share_database_and_broker(services: dict[str, Any]) -> None:
@@ -545,7 +560,7 @@ def test_dockerfile(kind: str) -> None:
                 assert not any(fnmatch.fnmatch(name, pat.rstrip("/")) for pat in ignored), f".dockerignore drops {src}"
                 copied.add(name)
     assert {"pyproject.toml", "cmc", "service", "worker"} <= copied
-    assert ("WORKDIR", "/app") in ins
+    assert ("WORKDIR", "/src") in ins
     users = [rest for word, rest in ins if word == "USER"]
     assert users and users[-1] not in ("root", "0"), "runs as root"
     # torch first, from the wheel index, pinned like pyproject.toml; then the other dependencies
@@ -564,14 +579,12 @@ def test_dockerfile(kind: str) -> None:
 
 
 def test_dockerfiles_share_uid_and_python() -> None:
-    uids = set()
+    script = INSTALL_SCRIPT.read_text()
+    m = re.search(r"useradd\b[^\n]*--uid (\d+)", script)
+    assert m, f"{INSTALL_SCRIPT.name}: no useradd --uid"
     for path in DOCKERFILES.values():
-        m = re.search(r"useradd\b[^&]*--uid (\d+)", path.read_text())
-        assert m, f"{path.name}: no useradd --uid"
         user = [rest for word, rest in dockerfile_instructions(path) if word == "USER"][-1]
-        assert user.split(":")[0] == m[1], f"{path.name}: USER {user} is not the uid it creates ({m[1]})"
-        uids.add(m[1])
-    assert len(uids) == 1, "the artifact volume's files must be writable by every service"
+        assert user.split(":")[0] == m[1], f"{path.name}: USER {user} is not the uid the script creates ({m[1]})"
     want = re.search(r">=\s*(3\.\d+)", pyproject()["requires-python"])[1]
     froms = [rest for word, rest in dockerfile_instructions(DOCKERFILES["cpu"]) if word == "FROM"]
     assert froms[-1].startswith(f"python:{want}-")
@@ -579,13 +592,27 @@ def test_dockerfiles_share_uid_and_python() -> None:
 
 
 @pytest.mark.parametrize("kind", sorted(DOCKERFILES))
-def test_kernel_warm_up_command_runs(kind: str) -> None:
-    """The image compiles the numba kernels at build time: its command must name real modules and
-    compile both (the renderer's and the training sampler's)."""
-    run = next(rest for word, rest in dockerfile_instructions(DOCKERFILES[kind]) if word == "RUN" and "warm_up" in rest)
-    code = re.search(r'python -c "([^"]+)"', run)[1]
-    assert "cmc.texture_kernel" in code and "cmc.plane_sampling" in code
-    subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True, timeout=300)
+def test_image_runs_under_a_read_only_root(kind: str, services: dict[str, Any]) -> None:
+    """What the service user may write at run time under compose's read_only root (the tmpfs /tmp
+    and the volume /data) is where the image points every cache: numba's kernels (seeded at build
+    time by docker/install-service.sh, tests/test_kernel_cache.py), $HOME, the working folder."""
+    ins = dockerfile_instructions(DOCKERFILES[kind])
+    env: dict[str, str] = {}
+    for word, rest in ins:
+        if word == "ENV":
+            env.update(dict(kv.split("=", 1) for kv in shlex.split(rest)))
+    writable = [PurePosixPath(p) for p in services["api"]["tmpfs"]] + [PurePosixPath("/data")]
+    for var in ("NUMBA_CACHE_DIR", "HOME"):
+        assert any(PurePosixPath(env[var]).is_relative_to(w) for w in writable), f"{var}={env[var]}"
+    assert not any(PurePosixPath(env["CMC_KERNEL_CACHE_SEED"]).is_relative_to(w) for w in writable)
+    run = [rest for word, rest in ins if word == "RUN"][-1]
+    assert run == "sh docker/install-service.sh", "the last build step is the shared install script"
+    workdirs = [rest for word, rest in ins if word == "WORKDIR"]
+    assert PurePosixPath(workdirs[-1]) in writable, "the processes start in a writable folder"
+    # one copy of the code: the script installs it, then deletes the folder it was copied to
+    script = INSTALL_SCRIPT.read_text()
+    assert 'pip install --no-deps "$src"' in script and 'rm -rf "$src"' in script
+    assert PurePosixPath(workdirs[-2]) != PurePosixPath(workdirs[-1])
 
 
 @pytest.mark.parametrize("kind", sorted(DOCKERFILES))
@@ -638,3 +665,55 @@ def test_docker_compose_config_validates() -> None:
     no_keys = {**env, "POSTGRES_PASSWORD": SECRETS["POSTGRES_PASSWORD"]}
     refused = subprocess.run(args, cwd=ROOT, env=no_keys, capture_output=True, text=True, timeout=60)
     assert refused.returncode != 0 and "CMC_API_KEYS" in refused.stderr + refused.stdout
+
+
+# -- the CPU-only deployment (docker-compose.cpu.yml) -------------------------------------------
+
+
+class _Reset:
+    """Compose's ``!reset`` tag: the key is removed from the merged file."""
+
+
+class _Override:
+    """Compose's ``!override`` tag: the value replaces the base file's instead of merging."""
+
+    def __init__(self, value: Any) -> None:
+        self.value = value
+
+
+class _ComposeLoader(yaml.SafeLoader):
+    pass
+
+
+_ComposeLoader.add_constructor("!reset", lambda loader, node: _Reset())
+_ComposeLoader.add_constructor("!override", lambda loader, node: _Override(loader.construct_mapping(node, deep=True)))
+
+
+def merge_compose(base: Any, override: Any) -> Any:
+    """Compose's merge of an override file into ``base``: mappings merge key by key, ``!reset``
+    removes, ``!override`` replaces, other values replace (enough for the files here)."""
+    if isinstance(override, _Override):
+        return override.value
+    if isinstance(base, dict) and isinstance(override, dict):
+        out = dict(base)
+        for k, v in override.items():
+            if isinstance(v, _Reset):
+                out.pop(k, None)
+            else:
+                out[k] = merge_compose(base.get(k), v)
+        return out
+    return override
+
+
+def test_cpu_only_deployment_trains_on_the_cpu_image(services: dict[str, Any]) -> None:
+    """docker-compose.cpu.yml: the training worker without a GPU reservation, on the CPU image
+    (built by the CPU Dockerfile with no CUDA build arguments), training on the CPU."""
+    override = yaml.load((ROOT / "docker-compose.cpu.yml").read_text(), Loader=_ComposeLoader)  # noqa: S506
+    assert set(override["services"]) == {"worker-gpu"}
+    merged = merge_compose(services, override["services"])
+    worker = merged["worker-gpu"]
+    assert "deploy" not in worker, "a CPU host has no device to reserve"
+    assert worker["build"] == services["api"]["build"] and "args" not in worker["build"]
+    assert worker["image"] == services["api"]["image"]
+    assert worker["environment"]["CMC_DEVICE"] == "cpu"
+    assert command(worker) == command(services["worker-gpu"]), "it still consumes the training queue"
