@@ -42,7 +42,8 @@ def cmd_serve(args: argparse.Namespace) -> None:
     else:
         print(f"API key required ({len(keys.digests)} configured).")
     app = create_app(settings, embedded_runner=EmbeddedRunner)  # the one place the API meets worker/
-    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
+    # on a stop, requests still running after 15 s (a slow upload) are cancelled, removing what they staged
+    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, timeout_graceful_shutdown=15)
 
 
 def cmd_new_api_key(args: argparse.Namespace) -> None:

@@ -7,6 +7,10 @@ the real PostgreSQL at 127.0.0.1:5432 as the scene store.
 2. Kill the GPU worker (SIGKILL, its whole process group) mid-training; a new GPU worker resumes
    the job from its last checkpoint, not from zero; also with the artifacts in an S3 bucket
    (moto_server) and a data folder of each process's own (no shared volume).
+3. Stop the API (SIGTERM, as ``docker compose stop``) in the middle of an upload: the client gets
+   an error, and no scene, artifact or working folder is left.
+
+The API runs with docker-compose.yml's command (bench/deployment_test.py runs the images).
 
 Each test uses its own queue names and PostgreSQL database; Redis database 14 is the tests' own
 and is emptied after each test (queues, bindings, the killed worker's unacknowledged message).
@@ -28,6 +32,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+import yaml
 from helpers import PG_ADMIN, REDIS_URL, S3_CREDENTIALS, new_bucket, render_body, synthetic_upload, throwaway_postgres
 from PIL import Image
 
@@ -90,10 +95,11 @@ class Deployment:
         return p
 
     def start_api(self) -> None:
-        self.start(
-            "api",
-            [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory", "--port", str(self.port)],
-        )
+        """The API as docker-compose.yml starts it, on 127.0.0.1 and a free port."""
+        cmd = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]["api"]["command"]
+        assert cmd[0] == "uvicorn"
+        cmd[cmd.index("--host") + 1], cmd[cmd.index("--port") + 1] = "127.0.0.1", str(self.port)
+        self.start("api", [sys.executable, "-m", *cmd])
         t0 = time.time()
         while time.time() - t0 < 60:
             try:
@@ -312,3 +318,43 @@ def test_docker_stop_of_the_gpu_worker_checkpoints_and_hands_the_job_on(deployme
             raise AssertionError(f"not resumed from step {step}: {stats}\n{d.log('gpu2')}")
         (attempts,) = conn.execute("select attempts from scenes where id = %s", (sid,)).fetchone()
     assert attempts == 0  # a clean stop is not a lost worker
+
+
+def test_api_stopped_mid_upload_leaves_nothing(deployment: Deployment) -> None:
+    """The upload's body stops half-way and the API is stopped: uvicorn cancels the request after
+    its graceful-shutdown timeout (compose's command), which removes the staged photos; before
+    that timeout existed, Docker's SIGKILL left them in the API's working folder."""
+    deployment.start_api()
+    parts, _, _ = synthetic_upload(width=160, height=120)
+    request = httpx.Request("POST", f"{deployment.url}/v1/scenes", files=parts, headers=deployment.headers)
+    body = request.read()
+    head = "".join(f"{k}: {v}\r\n" for k, v in request.headers.items() if k.lower() != "host")
+    sock = socket.create_connection(("127.0.0.1", deployment.port), timeout=60)
+    sock.sendall(f"POST /v1/scenes HTTP/1.1\r\nHost: 127.0.0.1\r\n{head}\r\n".encode() + body[: len(body) // 2])
+    work = deployment.tmp / "storage" / ".work"
+    t0 = time.time()
+    while not (work.is_dir() and any(work.rglob("*.upload"))):  # the API is staging the photos
+        assert time.time() - t0 < 30, deployment.log("api")
+        time.sleep(0.1)
+    api = deployment.procs["api"]
+    t_stop = time.time()
+    os.killpg(api.pid, signal.SIGTERM)
+    try:
+        api.wait(40)
+    except subprocess.TimeoutExpired:
+        pass  # asserted below; the fixture kills it
+    stopped_s = time.time() - t_stop
+    try:
+        answer = sock.recv(4096)
+    except OSError:
+        answer = b""
+    sock.close()
+    assert b" 202 " not in answer.split(b"\r\n", 1)[0], answer[:200]
+    assert stopped_s < 25, f"the API took {stopped_s:.0f} s to stop: Docker would have killed it"
+    assert not [p for p in work.rglob("*")], f"left in the working folder: {list(work.rglob('*'))}"
+    scenes = [p for p in (deployment.tmp / "storage").iterdir() if p.name != ".work"]
+    assert not scenes, f"left in storage: {scenes}"
+    deployment.procs.pop("api")
+    deployment.start_api()
+    listed = httpx.get(f"{deployment.url}/v1/scenes", headers=deployment.headers, timeout=10).json()["items"]
+    assert listed == [], listed
