@@ -871,11 +871,20 @@ def test_unfinished_job_resumes_after_a_restart(tmp_path: Path) -> None:
             time.sleep(0.1)
     # the app stopped mid-training: the job checkpointed and stays unfinished
     with TestClient(create_app(settings)) as client:
-        assert client.get(f"/v1/scenes/{sid}").json()["status"] in ("training", "baking", "ready")
-        body = wait_for(client, sid, ("ready", "failed"))
+        details = set()
+        body = client.get(f"/v1/scenes/{sid}").json()
+        assert body["status"] in ("training", "baking", "ready")
+        while body["status"] not in ("ready", "failed"):
+            details.add(body["detail"])
+            assert time.time() - t0 < 240
+            time.sleep(0.05)
+            body = client.get(f"/v1/scenes/{sid}").json()
         assert body["status"] == "ready"
         rec = client.app.state.services.store.get(sid)
-    assert rec.stats["train"]["resumed_from_step"] >= 10
+    resumed = rec.stats["train"]["resumed_from_step"]
+    assert resumed >= 10
+    # the status says so while it trains
+    assert f"training (fast preset, 40 steps, cpu), resumed from the checkpoint of step {resumed}" in details
     assert rec.attempts == 0  # a clean stop is not a lost worker
 
 

@@ -346,7 +346,8 @@ def _train_and_bake_in(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_
         status="training",
         progress=trainer.step / cfg.steps,
         eta_seconds=round((cfg.steps - trainer.step + bake_cost) * step_s, 1),
-        detail=f"training ({cfg.preset} preset, {cfg.steps} steps, {device})",
+        detail=f"training ({cfg.preset} preset, {cfg.steps} steps, {device})"
+        + (f", resumed from the checkpoint of step {resumed_from}" if resumed_from else ""),
         stats=stats,
     )
     hb.flush()
