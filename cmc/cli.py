@@ -156,6 +156,10 @@ def cmd_bench(args: argparse.Namespace) -> None:
     gains = _input_gains(args.input_gains) if args.input_gains else None
     if gains is not None and args.dataset != "synthetic":
         raise ConfigError("--input-gains is for the synthetic benchmark")
+    if args.views != "test" and args.dataset != "llff":
+        raise ConfigError("--views is for the llff benchmark (the synthetic set has no validation views)")
+    if not 0 < args.near_scale <= 1:
+        raise ConfigError(f"--near-scale must be in (0, 1], got {args.near_scale}")
     base = _config(args)
     variants = {"": base}
     if args.ablation:
@@ -171,10 +175,14 @@ def cmd_bench(args: argparse.Namespace) -> None:
         save = Path(args.save_dir) / (args.preset + suffix) if args.save_dir else None
         if args.dataset == "llff":
             scenes = (args.scenes or "fern").split(",")
-            report = run_llff_bench(Path(args.data), scenes, cfg, device, lpips_dir, save, hook)
+            report = run_llff_bench(
+                Path(args.data), scenes, cfg, device, lpips_dir, save, hook, args.views, args.near_scale
+            )
         else:
             scenes = args.scenes.split(",") if args.scenes else list(WIDE_SCENES)
-            report = run_synthetic_bench(scenes, cfg, device, lpips_dir, save, hook, input_gains=gains)
+            report = run_synthetic_bench(
+                scenes, cfg, device, lpips_dir, save, hook, input_gains=gains, near_scale=args.near_scale
+            )
         for b in bar.values():
             b.close()
         if suffix:
@@ -298,6 +306,19 @@ def build_parser() -> argparse.ArgumentParser:
         "--input-gains",
         help="synthetic: comma-separated factors on the three input photos' colours (per-shot exposure, "
         "as phones set it; the test views keep theirs), e.g. 1,1.15,0.87",
+    )
+    b.add_argument(
+        "--views",
+        choices=["test", "val"],
+        default="test",
+        help="llff: score the test views (the protocol's) or the validation views, neither trained on nor "
+        "tested (choose settings on these)",
+    )
+    b.add_argument(
+        "--near-scale",
+        type=float,
+        default=1.0,
+        help="train with every near bound times this (e.g. 0.25: bounds 4x too loose, as a stray SfM point gives)",
     )
     train_opts(b)
     b.add_argument(

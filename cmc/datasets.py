@@ -66,6 +66,12 @@ class Scene:
         images = np.clip(self.images * factor, 0, 1).astype(np.float32)
         return Scene(images, self.cameras, self.near_far, self.names, self.depths)
 
+    def with_near_scaled(self, factor: float) -> Scene:
+        """The same views with every near bound times ``factor`` (< 1: looser bounds, as a stray
+        point near a camera gives them)."""
+        near_far = self.near_far * np.array([factor, 1.0])
+        return Scene(self.images, self.cameras, near_far, self.names, self.depths)
+
     @property
     def near(self) -> float:
         return float(self.near_far[:, 0].min())
