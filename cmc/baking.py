@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from cmc.cameras import pixel_rays
+from cmc.cameras import Cameras, pixel_rays
 from cmc.fields import MPIField, TextureField
 from cmc.geometry import mean_baseline, texel_grid
 from cmc.images import to_uint8
@@ -279,6 +279,18 @@ class BakedScene:
                 for t in self.textures
             ]
         return self._fields
+
+    def coverage(self, K: np.ndarray, world_from_cam: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """[H, W] bool: the pixels of a render (its ``depth`` [H, W], target-camera z, 0 = no
+        surface) whose point an input photo saw (:meth:`cmc.cameras.Cameras.coverage`; each MPI's
+        reference camera is an input photo's). The rest a view shows only by extrapolation."""
+        inputs = Cameras(
+            np.stack([f.K.cpu().numpy() for f in self.frames]).astype(np.float64),
+            np.stack([f.world_from_ref.cpu().numpy() for f in self.frames]).astype(np.float64),
+            self.width,
+            self.height,
+        )
+        return inputs.coverage(K, world_from_cam, depth)
 
     def render(
         self,

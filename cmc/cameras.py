@@ -95,6 +95,25 @@ class Cameras:
         pix = np.einsum("nij,npj->npi", self.K, cam)
         return pix[..., :2] / pix[..., 2:3], cam[..., 2]
 
+    def coverage(self, K: np.ndarray, world_from_cam: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Which pixels of another camera's depth map show a point some camera here saw.
+
+        Args:
+            K, world_from_cam: the other camera (intrinsics [3, 3], camera-to-world [4, 4]).
+            depth: [H, W] its depth map, camera z in scene units, 0 = no surface.
+        Returns:
+            [H, W] bool: the pixel's point (at its centre) lies in front of some camera of these and
+            projects inside its image. Occlusion is not modelled: a point hidden behind a nearer
+            surface in every photo still counts as seen.
+        """
+        H, W = depth.shape
+        uv = np.stack(np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5), -1).reshape(-1, 2)
+        cam = pixel_rays(np.asarray(K, np.float64), uv) * depth.reshape(-1, 1)
+        points = cam @ np.asarray(world_from_cam, np.float64)[:3, :3].T + np.asarray(world_from_cam)[:3, 3]
+        seen_uv, z = self.project(points)
+        inside = (seen_uv >= 0).all(-1) & (seen_uv[..., 0] <= self.width) & (seen_uv[..., 1] <= self.height)
+        return ((inside & (z > 0)).any(0) & (depth.reshape(-1) > 0)).reshape(H, W)
+
     def scaled(self, width: int, height: int) -> Cameras:
         """The same cameras for images resized to (width, height)."""
         sx, sy = width / self.width, height / self.height

@@ -441,3 +441,22 @@ def test_load_camera_file_rejects_binary_file(tmp_path: Path) -> None:
     bad.write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe")
     with pytest.raises(CameraError, match="not valid JSON"):
         load_camera_file(bad)
+
+
+def test_coverage_of_a_sideways_view_of_a_wall() -> None:
+    """One input camera at the origin looking along +z at a wall z = 4; a target camera moved
+    0.5 to the right sees the wall's points u + f * 0.5 / 4 in the input image, so its last
+    f * 0.5 / 4 = 10 columns (and nothing else) lie outside it. No surface, or a point behind
+    the input camera, is never covered."""
+    W, H, f = 64, 48, 80.0
+    K = intrinsics(f, f, W / 2, H / 2)
+    inputs = Cameras(K, np.eye(4), W, H)
+    target = rigid(np.eye(3), [0.5, 0.0, 0.0])
+    depth = np.full((H, W), 4.0)
+    seen = inputs.coverage(K, target, depth)
+    assert seen.shape == (H, W)
+    assert seen[:, : W - 10].all() and not seen[:, W - 10 :].any()
+    depth[:5] = 0.0  # no surface
+    assert not inputs.coverage(K, target, depth)[:5].any()
+    behind = rigid(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 0.0])  # looking along -z
+    assert not inputs.coverage(K, behind, np.full((H, W), 4.0)).any()

@@ -31,8 +31,24 @@ def test_16_bit_png_decodes_to_the_same_counts() -> None:
     np.testing.assert_array_equal(np.asarray(decoded).astype(np.uint16), counts)
 
 
+def test_rgba_and_grey_alpha_pngs_decode_to_the_same_samples() -> None:
+    """The coverage mask's encodings: RGBA renders exactly; 16-bit grey + alpha depth (Pillow
+    reads it as 8-bit RGBA, grey repeated: the high byte of each sample)."""
+    rng = np.random.default_rng(2)
+    rgba = rng.integers(0, 256, (23, 31, 4)).astype(np.uint8)
+    decoded = Image.open(io.BytesIO(png_bytes(rgba)))
+    assert decoded.mode == "RGBA"
+    np.testing.assert_array_equal(np.asarray(decoded), rgba)
+    la = rng.integers(0, 65536, (23, 31, 2)).astype(np.uint16)
+    decoded = Image.open(io.BytesIO(png_bytes(la)))
+    assert decoded.size == (31, 23)
+    np.testing.assert_array_equal(np.asarray(decoded.convert("LA")), (la >> 8).astype(np.uint8))
+
+
 def test_other_arrays_are_refused() -> None:
     with pytest.raises(ValueError, match="png_bytes takes"):
-        png_bytes(np.zeros((4, 4, 4), np.uint8))
+        png_bytes(np.zeros((4, 4, 5), np.uint8))
+    with pytest.raises(ValueError, match="png_bytes takes"):
+        png_bytes(np.zeros((4, 4, 3), np.uint16))
     with pytest.raises(ValueError, match="png_bytes takes"):
         png_bytes(np.zeros((4, 4), np.float32))

@@ -220,6 +220,37 @@ def test_render_and_depth_match_the_ground_truth(ready) -> None:
     assert Image.open(io.BytesIO(preview.content)).mode == "RGB"
 
 
+def test_coverage_marks_what_no_input_photo_saw(ready) -> None:
+    """A camera moved far to the side of the inputs: ``coverage=true`` puts the pixels no input
+    photo saw in the alpha channel (render PNG, 16-bit depth PNG) and as NaN in the .npy, and
+    they agree with the exact mask from the scene's true depth at 97 % of the pixels."""
+    client, sid, scene, novel = ready
+    pose = novel.world_from_cam.copy()
+    pose[:, 0, 3] += 1.2  # beyond the inputs: the left part of the view is out of every photo
+    side = Cameras(novel.K, pose, novel.width, novel.height)
+    _, gt_depth = render_layers(DEFAULT_LAYERS, side)
+    exact = scene.cameras.coverage(side.K[0], side.world_from_cam[0], gt_depth[0])
+    assert 0.1 < exact.mean() < 0.9, exact.mean()
+    body = render_body(side)
+    r = client.post(f"/v1/scenes/{sid}/render?coverage=true", json=body)
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    rgba = np.asarray(Image.open(io.BytesIO(r.content)))
+    assert rgba.shape == (72, 96, 4) and set(np.unique(rgba[..., 3])) <= {0, 255}
+    assert ((rgba[..., 3] == 255) == exact).mean() > 0.97
+    plain = np.asarray(Image.open(io.BytesIO(client.post(f"/v1/scenes/{sid}/render", json=body).content)))
+    np.testing.assert_array_equal(rgba[..., :3], plain)  # the colours are the render's
+    assert (
+        client.post(f"/v1/scenes/{sid}/render?coverage=true", json=body, headers={"Accept": "image/jpeg"}).status_code
+        == 406
+    )
+    d = client.post(f"/v1/scenes/{sid}/depth?coverage=true", json=body)
+    la = np.asarray(Image.open(io.BytesIO(d.content)).convert("LA"))  # Pillow: 16-bit grey + alpha as 8 bits
+    np.testing.assert_array_equal(la[..., 1] == 255, rgba[..., 3] == 255)
+    n = client.post(f"/v1/scenes/{sid}/depth?coverage=true", json=body, headers={"Accept": "application/x-npy"})
+    depth = np.load(io.BytesIO(n.content))
+    np.testing.assert_array_equal(np.isnan(depth), (rgba[..., 3] == 0) & ~(np.nan_to_num(depth, nan=1) == 0))
+
+
 def test_camera_path_gives_novel_cameras_that_render_as_they_are(ready) -> None:
     client, sid, scene, _ = ready
     r = client.get(f"/v1/scenes/{sid}/camera-path?path=orbit&frames=8")

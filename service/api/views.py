@@ -49,6 +49,14 @@ from service.storage import file_response
 log = logging.getLogger("cmc.api")
 router = APIRouter()
 
+Coverage = Annotated[
+    bool,
+    Query(
+        description="mark the pixels whose point no input photo saw (the view extrapolates there): an alpha "
+        "channel in PNGs (0 there), NaN in .npy depth; not with JPEG"
+    ),
+]
+
 
 def _camera(body: RenderCamera, settings: Settings) -> tuple[np.ndarray, np.ndarray, int, int]:
     """K [3, 3] and world_from_cam [4, 4] in the OpenCV convention, width, height."""
@@ -112,14 +120,21 @@ async def render_view(
     svc: Svc,
     owner: Owner,
     _: Annotated[None, RenderQuota],
+    coverage: Coverage = False,
     accept: Annotated[str | None, Header()] = None,
 ) -> Response:
-    media = negotiate(accept, ["image/png", "image/jpeg"])
+    media = negotiate(accept, ["image/png"] if coverage else ["image/png", "image/jpeg"])
     if media is None:
-        raise APIError(406, ErrorCode.not_acceptable, "this endpoint returns image/png or image/jpeg")
+        formats = "image/png (with coverage=true)" if coverage else "image/png or image/jpeg"
+        raise APIError(406, ErrorCode.not_acceptable, f"this endpoint returns {formats}")
     await run_in_threadpool(ready_scene, svc, scene_id, owner)
     K, pose, w, h = _camera(camera, svc.settings)
-    body = await svc.render_queue.run(lambda: encode_image(svc.renders.render(scene_id, K, pose, w, h).rgb, media))
+
+    def draw() -> bytes:
+        out = svc.renders.render(scene_id, K, pose, w, h, coverage)
+        return encode_image(out.rgb, media, out.coverage)
+
+    body = await svc.render_queue.run(draw)
     return Response(body, media_type=media, headers={"Cache-Control": "no-store"})
 
 
@@ -145,6 +160,7 @@ async def render_depth(
     owner: Owner,
     _: Annotated[None, RenderQuota],
     preview: Annotated[bool, Query(description="an 8-bit colour map for people instead of the data")] = False,
+    coverage: Coverage = False,
     accept: Annotated[str | None, Header()] = None,
 ) -> Response:
     media = "image/png" if preview else negotiate(accept, ["image/png", "application/x-npy"])
@@ -154,12 +170,12 @@ async def render_depth(
     K, pose, w, h = _camera(camera, svc.settings)
 
     def draw() -> tuple[Rendered, bytes]:
-        out = svc.renders.render(scene_id, K, pose, w, h)
+        out = svc.renders.render(scene_id, K, pose, w, h, coverage)
         if preview:
-            return out, encode_depth_preview(out.depth, out.near, out.far)
+            return out, encode_depth_preview(out.depth, out.near, out.far, out.coverage)
         if media == "image/png":
-            return out, encode_depth_png16(out.depth, out.far)
-        return out, encode_depth_npy(out.depth)
+            return out, encode_depth_png16(out.depth, out.far, out.coverage)
+        return out, encode_depth_npy(out.depth, out.coverage)
 
     out, body = await svc.render_queue.run(draw)
     headers = {"Cache-Control": "no-store", "Depth-Units": "scene"}
