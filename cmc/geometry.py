@@ -23,6 +23,32 @@ def plane_depths(near: float, far: float, num_planes: int) -> np.ndarray:
     return 1.0 / np.linspace(1.0 / near, 1.0 / far, num_planes)
 
 
+def occupied_depth_range(
+    near: float, far: float, surfaces: np.ndarray, share: float = 0.01, pad: float = 0.15
+) -> tuple[float, float]:
+    """The depth interval within [``near``, ``far``] where the scene's surfaces lie.
+
+    ``surfaces`` [D] is how many surfaces lie at each plane of :func:`plane_depths` (``near``,
+    ``far``, D), e.g. plane-sweep texels counted at their most likely plane. The interval runs
+    from the plane where ``share`` of them lie nearer to the plane where ``share`` lie farther,
+    widened in disparity by ``pad`` times its width plus one plane spacing at each end (the
+    sweep places a surface to within a plane), and clipped to [near, far]. Returns (near, far).
+    """
+    surfaces = np.asarray(surfaces, dtype=np.float64)
+    D = len(surfaces)
+    if not np.all(np.isfinite(surfaces)) or np.any(surfaces < 0) or surfaces.sum() <= 0:
+        raise ValueError("surface counts must be finite, non-negative and not all zero")
+    disparity = 1.0 / plane_depths(near, far, D)  # decreasing: plane 0 is the nearest
+    cdf = np.cumsum(surfaces) / surfaces.sum()
+    first = int(np.searchsorted(cdf, share, side="right"))
+    last = int(np.searchsorted(cdf, 1.0 - share, side="left"))
+    spacing = disparity[0] - disparity[1]
+    widen = pad * (disparity[first] - disparity[last]) + spacing
+    hi = min(disparity[0], disparity[first] + widen)
+    lo = max(disparity[-1], disparity[last] - widen)
+    return (near if hi >= disparity[0] else 1.0 / hi), (far if lo <= disparity[-1] else 1.0 / lo)
+
+
 def content_plane_depths(near: float, far: float, density: np.ndarray, floor: float) -> np.ndarray:
     """[D] plane depths from ``near`` (index 0) to ``far`` (index D-1), spaced in disparity so that
     the planes crowd where the scene's surfaces are.

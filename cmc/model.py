@@ -13,7 +13,7 @@ from cmc.config import ModelConfig
 from cmc.datasets import Scene
 from cmc.errors import ConfigError
 from cmc.fields import MLPField, MPIField, PyramidFieldConfig, PyramidPlaneField, plane_group_bounds
-from cmc.geometry import content_plane_depths, texel_grid
+from cmc.geometry import content_plane_depths, occupied_depth_range, texel_grid
 from cmc.planesweep import affordable_supersample, alpha_from_weights, plane_sweep_weights
 from cmc.rendering import ImageOutput, MPIFrame, render_image
 
@@ -82,19 +82,28 @@ def sweep_probabilities(
     )
 
 
-def content_density(frames: list[MPIFrame], images: torch.Tensor, cfg: ModelConfig) -> np.ndarray:
-    """[D] how much of the scene lies at each plane of ``frames`` (the same planes in every
-    frame): per view, the plane-sweep probabilities (:func:`sweep_probabilities`, not
-    supersampled) summed over the texels inside the reference photo; the mean over views of each
-    view's shares. images: [N, 3, H, W]."""
-    shares = []
+def sweep_statistics(frames: list[MPIFrame], images: torch.Tensor, cfg: ModelConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Where the plane sweep finds the scene, on the planes of ``frames`` (the same planes in
+    every frame), over the texels inside each reference photo: ``(density, surfaces)``, each [D],
+    the mean over views of each view's shares.
+
+    ``density``: the plane-sweep probabilities (:func:`sweep_probabilities`, not supersampled)
+    summed per plane: how much of the scene lies at each plane. ``surfaces``: the texels counted
+    at their most likely plane, each weighted by how far its peak stands above a flat answer
+    (``max p - 1 / D``: a texel the sweep cannot place counts for nothing). images: [N, 3, H, W].
+    """
+    density, surfaces = [], []
     for i, fr in enumerate(frames):
         probs = sweep_probabilities(frames, images, i, cfg.pyramid, supersample=False)
         h, w = probs.shape[-2:]
         inside = (texel_grid(h, w, probs.device).abs() <= 1 / fr.margin).all(-1)
-        per_plane = probs[:, inside].sum(1).double()
-        shares.append((per_plane / per_plane.sum()).cpu().numpy())
-    return np.mean(shares, 0)
+        p = probs[:, inside].double()  # [D, T]
+        per_plane = p.sum(1)
+        peak, best = p.max(0)
+        placed = torch.zeros_like(per_plane).index_add_(0, best, (peak - 1.0 / len(p)).clamp_min(0))
+        density.append((per_plane / per_plane.sum()).cpu().numpy())
+        surfaces.append((placed / placed.sum().clamp_min(1e-12)).cpu().numpy())
+    return np.mean(density, 0), np.mean(surfaces, 0)
 
 
 class ExposureResponse(nn.Module):
@@ -136,6 +145,11 @@ class MeanResponseField(MPIField):
         return self.exposure.convert(rgb, self.view, None).clamp(0, 1), alpha
 
 
+# A fitted depth range replaces the scene's bounds when its disparity span is below this share of
+# theirs (one more plane sweep; the planes would otherwise move by under a tenth of a spacing).
+FIT_WORTH = 0.9
+
+
 class CMCModel(nn.Module):
     """Per-view MPIs for the N views of a scene.
 
@@ -144,7 +158,8 @@ class CMCModel(nn.Module):
         fields: N fields (``nn.ModuleList``).
         exposure: the input photos' colour responses (:class:`ExposureResponse`), or None;
             renders and bakes show every MPI in their mean (:meth:`display_fields`).
-        near, far: the plane range (scene units) shared by all MPIs.
+        near, far: the plane range (scene units) shared by all MPIs: the scene's bounds, or with
+            ``fit_depth_range`` the part of them where the plane sweep finds the scene.
     """
 
     def __init__(self, scene: Scene, cfg: ModelConfig, device: torch.device | str = "cpu"):
@@ -180,7 +195,13 @@ class CMCModel(nn.Module):
         if not 0 < cfg.plane_density_floor <= 1:
             raise ConfigError(f"model.plane_density_floor must be in (0, 1], got {cfg.plane_density_floor}")
         if cfg.plane_density_floor < 1:
-            density = content_density(self.frames, images, cfg)
+            density, surfaces = sweep_statistics(self.frames, images, cfg)
+            if cfg.fit_depth_range:
+                near, far = occupied_depth_range(self.near, self.far, surfaces)
+                if 1 / near - 1 / far < FIT_WORTH * (1 / self.near - 1 / self.far):  # else the planes barely move
+                    self.near, self.far = near, far
+                    self.frames = frames()
+                    density, _ = sweep_statistics(self.frames, images, cfg)
             self.frames = frames(content_plane_depths(self.near, self.far, density, cfg.plane_density_floor))
         fields: list[MPIField] = []
         for i, fr in enumerate(self.frames):

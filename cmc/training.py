@@ -104,7 +104,7 @@ class Trainer:
         self.images = torch.as_tensor(scene.images, device=self.device).reshape(len(scene), -1, 3)
         self.K = torch.as_tensor(scene.cameras.K, dtype=torch.float32, device=self.device)
         self.poses = torch.as_tensor(scene.cameras.world_from_cam, dtype=torch.float32, device=self.device)
-        self.depth_scale = scene.far - scene.near
+        self.depth_scale = self.model.far - self.model.near
         self.step = 0
 
     # -- one step ---------------------------------------------------------------------------
@@ -162,7 +162,7 @@ class Trainer:
         losses = {"mse": torch.stack([reconstruction_loss(by_target[j], targets[j]) for j in range(n)]).mean()}
         if lc.depth_consistency == "cauchy":
             scale = 1.0 / (self.model.cfg.num_planes - 1)
-            dc_loss = lambda o: robust_depth_consistency(o, self.scene.near, self.scene.far, scale)  # noqa: E731
+            dc_loss = lambda o: robust_depth_consistency(o, self.model.near, self.model.far, scale)  # noqa: E731
         else:
             dc_loss = lambda o: depth_consistency(o, self.depth_scale)  # noqa: E731
         if full and lc.lambda_dc_input > 0:

@@ -369,8 +369,9 @@ def test_content_plane_depths_put_planes_at_the_layers(tmp_path):
     adaptive = models[0.25]
     for fr in adaptive.frames[1:]:
         torch.testing.assert_close(fr.depths, adaptive.frames[0].depths)
-    assert adaptive.frames[0].depths[0].item() == pytest.approx(scene.near)
-    assert adaptive.frames[0].depths[-1].item() == pytest.approx(scene.far)
+    assert adaptive.frames[0].depths[0].item() == pytest.approx(adaptive.near)  # fitted to the scene
+    assert adaptive.frames[0].depths[-1].item() == pytest.approx(adaptive.far)
+    assert scene.near <= adaptive.near < adaptive.far <= scene.far
     assert gap(adaptive) < 0.7 * gap(models[1.0]), (gap(adaptive), gap(models[1.0]))
     baked = BakedScene.load(bake(adaptive, tmp_path / "baked"))
     np.testing.assert_allclose(baked.frames[0].depths.numpy(), adaptive.frames[0].depths.numpy(), rtol=1e-6)
@@ -436,3 +437,68 @@ def test_exposure_compensation_learns_the_gains_and_keeps_the_geometry():
                 exp.log_gain.copy_(saved)
             assert np.mean(ac) < 0.5 * np.mean(ac_raw), (ac, ac_raw)
     assert errors[True] < 0.8 * errors[False], errors
+
+
+def test_occupied_depth_range_known_answers():
+    """Surfaces on planes 10-20 of 41 (none elsewhere): the range is those planes' depths widened by
+    15 % of their disparity span plus one plane spacing each side; a share in the tails is cut."""
+    from cmc.geometry import occupied_depth_range, plane_depths
+
+    near, far, D = 1.0, 100.0, 41
+    disp = 1 / plane_depths(near, far, D)
+    surfaces = np.zeros(D)
+    surfaces[10:21] = 1.0
+    lo, hi = occupied_depth_range(near, far, surfaces)
+    widen = 0.15 * (disp[10] - disp[20]) + (disp[0] - disp[1])
+    assert 1 / lo == pytest.approx(disp[10] + widen) and 1 / hi == pytest.approx(disp[20] - widen)
+    surfaces[0] = 0.005  # a stray surface: under 1 % of them
+    assert occupied_depth_range(near, far, surfaces) == pytest.approx((lo, hi))
+    surfaces[0] = 0.5  # no longer stray: the range reaches the near bound
+    assert occupied_depth_range(near, far, surfaces)[0] == near
+    assert occupied_depth_range(near, far, np.ones(D)) == (near, far)
+
+
+def test_planes_fit_the_scene_whatever_the_near_bound():
+    """``model.fit_depth_range``: with the near bound 4x too close (as one stray SfM point near a
+    camera gives), the planes still span the scene's true depths and not much more, and a short
+    training renders the test views within 0.3 dB of the run with the tight bound. Without the fit
+    three quarters of the planes lie in front of the scene and the views are worse."""
+    from cmc.model import CMCModel
+
+    W2, H2 = 84, 63
+    split = wide_baseline_split("cards", W2, H2)
+    tight, loose = split.train, split.train.with_near_scaled(0.25)
+    z_min, z_max = float(tight.depths.min()), float(tight.depths.max())
+    base = preset_config("fast", steps=100, rays_per_view=512, unseen_rays=256)
+    base = with_settings(base, ["model.num_planes=24"])
+    assert base.model.fit_depth_range  # the preset's
+    fitted = CMCModel(loose, base.model)
+    assert fitted.near <= z_min and fitted.far >= z_max, (fitted.near, fitted.far, z_min, z_max)
+    span = lambda n, f: 1 / n - 1 / f  # noqa: E731  (disparity)
+    assert span(fitted.near, fitted.far) < 1.5 * span(tight.near, tight.far) < 0.5 * span(loose.near, loose.far)
+
+    def halfway_psnr(scene, cfg) -> float:
+        trainer = Trainer(scene, cfg)
+        trainer.fit()
+        cams = split.test.cameras
+        with torch.no_grad():
+            return float(
+                np.mean(
+                    [
+                        psnr(
+                            trainer.model.render(cams.K[k], cams.world_from_cam[k], W2, H2).rgb.numpy(),
+                            split.test.images[k],
+                        )
+                        for k in range(3)
+                    ]
+                )
+            )
+
+    unfitted = with_settings(base, ["model.fit_depth_range=false"])
+    scores = {
+        "tight": halfway_psnr(tight, base),
+        "loose": halfway_psnr(loose, base),
+        "loose, no fit": halfway_psnr(loose, unfitted),
+    }
+    assert scores["loose"] >= scores["tight"] - 0.3, scores
+    assert scores["loose, no fit"] < scores["loose"] - 0.3, scores
