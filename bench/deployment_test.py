@@ -168,6 +168,24 @@ class Stack:
             keys.update(o["Key"] for o in page.get("Contents", []))
         return keys
 
+    def bucket_bytes(self, prefix: str) -> int:
+        pages = self.s3.get_paginator("list_objects_v2").paginate(Bucket="cmc-artifacts", Prefix=prefix)
+        return sum(o["Size"] for page in pages for o in page.get("Contents", []))
+
+    def peak_memory_bytes(self) -> dict[str, int]:
+        """Peak memory of each running container since it started (its cgroup's, v1 or v2)."""
+        peaks = {}
+        for c in self.containers():
+            cid = c["Id"]
+            for path in (
+                f"/sys/fs/cgroup/memory/docker/{cid}/memory.max_usage_in_bytes",
+                f"/sys/fs/cgroup/system.slice/docker-{cid}.scope/memory.peak",
+            ):
+                if Path(path).exists():
+                    name = c["Config"]["Labels"].get("com.docker.compose.service", cid)
+                    peaks[name] = max(peaks.get(name, 0), int(Path(path).read_text()))
+        return peaks
+
     def upload(self, options: dict[str, Any], callback_url: str | None = None) -> str:
         photos = ROOT.parent / "shared" / "datasets" / "llff" / "fern" / "images"
         files = [("images", (p, (photos / p).read_bytes(), "image/jpeg")) for p in PHOTOS]
@@ -356,6 +374,7 @@ def main_job(report: Report, stack: Stack, hooks: WebhookReceiver) -> None:
         c["detail"] = json.loads(body)["type"]
     with report.check("delete: 204, then 404, no object left in the bucket") as c:
         before = len(stack.bucket_keys(f"scenes/{sid}/"))
+        report.measured["bucket_bytes_per_scene"] = stack.bucket_bytes(f"scenes/{sid}/")
         assert stack.http.delete(base).status_code == 204
         assert stack.http.get(base).status_code == 404
         t0 = time.time()
@@ -518,6 +537,7 @@ def main() -> int:
             fault_three_scenes_three_pose_workers(report, stack)
     finally:
         report.measured["total_seconds"] = round(time.perf_counter() - t_start, 1)
+        report.measured["peak_memory_bytes"] = stack.peak_memory_bytes()
         if report.failed:
             for c in stack.containers():
                 name = c["Name"].lstrip("/")
