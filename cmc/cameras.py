@@ -110,7 +110,8 @@ class Cameras:
         uv = np.stack(np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5), -1).reshape(-1, 2)
         cam = pixel_rays(np.asarray(K, np.float64), uv) * depth.reshape(-1, 1)
         points = cam @ np.asarray(world_from_cam, np.float64)[:3, :3].T + np.asarray(world_from_cam)[:3, 3]
-        seen_uv, z = self.project(points)
+        with np.errstate(divide="ignore", invalid="ignore"):  # points in a camera's plane: not seen
+            seen_uv, z = self.project(points)
         inside = (seen_uv >= 0).all(-1) & (seen_uv[..., 0] <= self.width) & (seen_uv[..., 1] <= self.height)
         return ((inside & (z > 0)).any(0) & (depth.reshape(-1) > 0)).reshape(H, W)
 

@@ -462,7 +462,8 @@ def test_planes_fit_the_scene_whatever_the_near_bound():
     """``model.fit_depth_range``: with the near bound 4x too close (as one stray SfM point near a
     camera gives), the planes still span the scene's true depths and not much more, and a short
     training renders the test views within 0.3 dB of the run with the tight bound. Without the fit
-    three quarters of the planes lie in front of the scene and the views are worse."""
+    far fewer planes lie where the scene is (at this size the views lose 0.15 dB; on real scenes with
+    loose bounds 0.9-1.8 dB: bench/BOUNDS.md)."""
     from cmc.model import CMCModel
 
     W2, H2 = 84, 63
@@ -494,11 +495,16 @@ def test_planes_fit_the_scene_whatever_the_near_bound():
                 )
             )
 
-    unfitted = with_settings(base, ["model.fit_depth_range=false"])
-    scores = {
-        "tight": halfway_psnr(tight, base),
-        "loose": halfway_psnr(loose, base),
-        "loose, no fit": halfway_psnr(loose, unfitted),
-    }
+    scores = {"tight": halfway_psnr(tight, base), "loose": halfway_psnr(loose, base)}
     assert scores["loose"] >= scores["tight"] - 0.3, scores
-    assert scores["loose, no fit"] < scores["loose"] - 0.3, scores
+    # without the fit, the loose bounds leave far fewer planes where the scene is
+    unfitted = CMCModel(loose, replace(base.model, fit_depth_range=False))
+
+    def planes_in_scene(model: CMCModel) -> int:
+        z = model.frames[0].depths.numpy()
+        return int(((z >= z_min) & (z <= z_max)).sum())
+
+    assert planes_in_scene(fitted) >= 1.5 * planes_in_scene(unfitted), (
+        planes_in_scene(fitted),
+        planes_in_scene(unfitted),
+    )
