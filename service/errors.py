@@ -115,11 +115,17 @@ def install_error_handlers(app: FastAPI) -> None:
         return error_response(e.status_code, code, message, None, getattr(e, "headers", None))
 
     @app.exception_handler(RequestValidationError)
-    async def _validation_error(_: Request, e: RequestValidationError):
+    async def _validation_error(request: Request, e: RequestValidationError):
         details = [
             {"field": ".".join(str(p) for p in err.get("loc", ())), "problem": err.get("msg", "")} for err in e.errors()
         ]
-        return error_response(422, ErrorCode.validation_error, "the request is not valid", details)
+        message = "the request is not valid"
+        body_not_json = any(tuple(err.get("loc", ()))[:1] == ("body",) for err in e.errors()) and not (
+            request.headers.get("content-type", "").split(";")[0].strip().lower().endswith("json")
+        )
+        if body_not_json:  # FastAPI reads a body it was not told is JSON as a string
+            message = "the request body must be JSON, sent with Content-Type: application/json"
+        return error_response(422, ErrorCode.validation_error, message, details)
 
     @app.exception_handler(Exception)
     async def _internal_error(request: Request, e: Exception):

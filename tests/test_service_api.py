@@ -303,6 +303,12 @@ def test_render_content_negotiation_and_bad_cameras(ready) -> None:
     missing = client.post(f"/v1/scenes/{sid}/render", json={"fl_x": 10})
     assert missing.status_code == 422 and missing.json()["error"]["code"] == "validation_error"
     assert {d["field"] for d in missing.json()["error"]["details"]} >= {"body.transform_matrix", "body.w", "body.h"}
+    assert missing.json()["error"]["message"] == "the request is not valid"
+    # the camera as JSON text without Content-Type (curl -d sends a form type): say what is wrong
+    for headers in ({}, {"Content-Type": "application/x-www-form-urlencoded"}):
+        untyped = client.post(f"/v1/scenes/{sid}/render", content=json.dumps(body), headers=headers)
+        assert untyped.status_code == 422, untyped.text
+        assert "Content-Type: application/json" in untyped.json()["error"]["message"], untyped.text
 
 
 def test_cameras_round_trip_in_the_upload_format(ready) -> None:
