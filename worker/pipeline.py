@@ -325,7 +325,13 @@ def _train_and_bake_in(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_
     cams = scene.cameras
     bake_cost = bake_steps(cams.width, cams.height, cfg.model.margin, len(scene), cfg.rays_per_view)
     step_s = REFERENCE_STEP_S  # until this worker has measured its own steps
-    hb.set(eta_seconds=round((cfg.steps + bake_cost) * step_s, 1))  # while the model is built (plane sweep)
+    hb.set(  # while the model is built: plane sweeps, seconds to minutes
+        status="training",
+        progress=0.0,
+        eta_seconds=round((cfg.steps + bake_cost) * step_s, 1),
+        detail=f"building the model ({cfg.preset} preset: plane sweep)",
+    )
+    hb.flush()
     device = s.device
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
