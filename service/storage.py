@@ -157,8 +157,8 @@ class LocalStorage(Storage):
             raise
 
     def read_bytes(self, key: str) -> bytes:
-        try:
-            return self.path(key).read_bytes()
+        try:  # no folder is made for a read: one made mid-publish would race the rename
+            return (self.root / check_key(key)).read_bytes()
         except (FileNotFoundError, IsADirectoryError):
             raise StorageError(f"no artifact {key}") from None
 
@@ -171,7 +171,7 @@ class LocalStorage(Storage):
         return sorted(p.relative_to(self.root).as_posix() for p in files)
 
     def delete(self, key: str) -> None:
-        self.path(key).unlink(missing_ok=True)
+        (self.root / check_key(key)).unlink(missing_ok=True)
 
     def delete_scene(self, scene_id: str) -> None:
         self._remove(self.path(scene_id))
