@@ -33,7 +33,7 @@ bench-fern: install  ## LLFF fern, fast preset, CPU (about 5 minutes), then rege
 		--scenes fern --preset fast --out bench/fern_fast_cpu.json --save-dir bench/runs
 	$(VENV)/bin/python bench/make_results.py
 
-deployment-test: install  ## build the images, start docker-compose.yml, run every job and fault check (bench/deployment_test.py; ~30 min, Docker needed)
+deployment-test: install  ## build the images, start docker-compose.yml, run every job and fault check (bench/deployment_test.py; 11 min on 2 cores, Docker needed)
 	$(VENV)/bin/python bench/deployment_test.py $(if $(wildcard $(SHARED)/tools/offline-docker),--offline-docker $(SHARED)/tools/offline-docker)
 
 .PHONY: install chromium jq demo test bench-fern deployment-test
