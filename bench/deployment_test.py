@@ -46,6 +46,7 @@ from typing import Any
 
 import boto3
 import httpx
+from servers import free_port  # bench/servers.py: this script runs as python bench/deployment_test.py
 
 ROOT = Path(__file__).resolve().parents[1]
 PROJECT = "cmc-deploytest"
@@ -74,12 +75,6 @@ def run(cmd: list[str], timeout: float = 1800, check: bool = True, **kw: Any) ->
     if check and r.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd[:6])}... exited {r.returncode}:\n{(r.stdout + r.stderr)[-3000:]}")
     return r
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Report:
