@@ -212,7 +212,16 @@ def run_llff_bench(
             sd.mkdir(parents=True, exist_ok=True)
         hook = (lambda p, n=name: on_progress(n, p)) if on_progress else None
         records.append(
-            bench_scene(data_dir / name, cfg, device, lpips_dir, 5, sd, hook, views=views, near_scale=near_scale)
+            bench_scene(
+                data_dir / name,
+                cfg,
+                device,
+                lpips_dir,
+                save_dir=sd,
+                on_progress=hook,
+                views=views,
+                near_scale=near_scale,
+            )
         )
     keys = (*METRICS, "train_seconds", "render_ms_median")
     return {
