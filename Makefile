@@ -26,6 +26,7 @@ jq:  ## jq for the README walk-through test (apt-get, as root); without it that 
 
 test: install chromium jq  ## the whole test suite (what CI runs)
 	$(VENV)/bin/ruff check cmc service worker tests bench
+	$(VENV)/bin/ruff format --check .
 	CMC_SHARED_DIR=$(SHARED) $(VENV)/bin/python -m pytest -q
 
 bench-fern: install  ## LLFF fern, fast preset, CPU (about 5 minutes), then regenerate bench/RESULTS.md

@@ -73,9 +73,10 @@ window.done = new GLTFLoader().loadAsync('scene.glb').then((gltf) => {
 def three() -> Path:
     """three.js from the npm registry (the files the page imports)."""
     module = THREE_DIR / "node_modules" / "three"
-    if not (module / "package.json").exists() or json.loads((module / "package.json").read_text())[
-        "version"
-    ] != THREE_VERSION:
+    if (
+        not (module / "package.json").exists()
+        or json.loads((module / "package.json").read_text())["version"] != THREE_VERSION
+    ):
         npm = shutil.which("npm")
         if npm is None:
             browser_unavailable("npm is not installed (apt-get install -y npm)")

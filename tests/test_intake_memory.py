@@ -26,7 +26,6 @@ ROOT = Path(__file__).resolve().parents[1]
 MIB = 1 << 20
 
 
-
 class NoJobs:
     """A job queue that runs nothing: what is measured is intake alone."""
 

@@ -32,6 +32,8 @@ from cmc.training import Trainer
 
 VIEWER = Path(__file__).resolve().parent.parent / "service" / "static" / "viewer.html"
 W, H = 80, 60
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _browser_first(browser):
     """Skip (or fail under CI) before building the scene when there is no browser."""
