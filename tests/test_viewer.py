@@ -229,3 +229,23 @@ def test_api_mode_reports_a_failed_scene(api_url, page):
     result = page.evaluate("() => window.cmcViewer.ready.then(() => 'ready', e => e.message)")
     assert "only 1 of 3 photos registered" in result
     assert "only 1 of 3 photos registered" in page.text_content("#status-text")
+
+
+def test_unseen_view_tints_what_no_photo_saw(site, static_url, page):
+    """A camera turned 20 degrees sideways sees past the inputs: the pixels the viewer tints are
+    those BakedScene.coverage marks unseen (what ?coverage=true leaves transparent)."""
+    page.goto(f"{static_url}/viewer.html?mpi=baked/")
+    _wait_ready(page)
+    cam = synthetic_cameras(5, W, H)[1]
+    K, pose = cam.K[0], cam.world_from_cam[0].copy()
+    a = np.radians(20)
+    pose[:3, :3] = pose[:3, :3] @ np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    n = page.evaluate("([K, P, w, h]) => window.cmcViewer.setCamera(K, P, w, h)", [K.tolist(), pose.tolist(), W, H])
+    plain = _frame(page, n)
+    n = page.evaluate("() => { window.cmcViewer.setUnseenView(true); return window.cmcViewer.frames + 1; }")
+    tinted = _frame(page, n)
+    marked = np.abs(tinted - plain).sum(-1) > 0.05
+    baked = BakedScene.load(site / "baked")
+    unseen = ~baked.coverage(K, pose, baked.render(K, pose).depth.numpy())
+    assert 0.1 < unseen.mean() < 0.9, unseen.mean()  # the camera sees both
+    assert (marked == unseen).mean() >= 0.97, (marked.mean(), unseen.mean(), (marked == unseen).mean())
