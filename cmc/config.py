@@ -190,7 +190,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
         # and the synthetic set within 0.02 dB), so they went. Validation SSIM 0.686 -> 0.700; fern
         # 23.05 / 0.742 / 0.213 -> 23.36 / 0.753 / 0.206 (PSNR / SSIM / LPIPS-vgg); synthetic halfway
         # +0.15 dB, beyond +0.21, near -0.02 (`cards` -0.17, `slanted` +0.11); renders 1.2-1.3x slower.
-        # The planes over the depths where the first sweep finds the scene (bench/BOUNDS.md): room and
+        # The planes over the depths where the first sweep finds the scene (bench/SCENES.md): room and
         # trex, whose bounds are 3-5x looser than LLFF's, gained 0.9 and 1.8 dB on their validation views.
         loss = LossConfig(
             lambda_ac=0.0,
