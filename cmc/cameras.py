@@ -271,16 +271,52 @@ class CameraFile:
     near_far: np.ndarray | None = None
 
 
+def _error(where: str, message: str) -> CameraError:
+    """A CameraError saying ``where: message`` (just ``message`` when ``where`` is empty)."""
+    return CameraError(f"{where}: {message}" if where else message)
+
+
 def _number(d: dict, key: str, where: str) -> float:
     if key not in d:
-        raise CameraError(f"{where}: missing {key!r}")
+        raise _error(where, f"missing {key!r}")
     try:
         v = float(d[key])
     except (TypeError, ValueError):
-        raise CameraError(f"{where}: {key!r} must be a number, got {d[key]!r}") from None
+        raise _error(where, f"{key!r} must be a number, got {d[key]!r}") from None
     if not np.isfinite(v):
-        raise CameraError(f"{where}: {key!r} is not finite")
+        raise _error(where, f"{key!r} is not finite")
     return v
+
+
+def _frame_camera(merged: dict, where: str) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """Intrinsics [3, 3], the raw ``transform_matrix`` [4, 4] (in the file's convention) and the
+    size (w, h) of one frame, its keys ``merged`` over the file's shared ones."""
+    w, h = _number(merged, "w", where), _number(merged, "h", where)
+    fx = _number(merged, "fl_x", where)
+    fy = _number(merged, "fl_y", where) if "fl_y" in merged else fx
+    cx = _number(merged, "cx", where) if "cx" in merged else w / 2
+    cy = _number(merged, "cy", where) if "cy" in merged else h / 2
+    try:
+        T = np.asarray(merged["transform_matrix"], dtype=np.float64)
+    except KeyError:
+        raise _error(where, "missing 'transform_matrix'") from None
+    except (TypeError, ValueError):
+        raise _error(where, "'transform_matrix' must be a 4x4 list of numbers") from None
+    if T.shape == (3, 4):
+        T = np.concatenate([T, [[0, 0, 0, 1]]])
+    if T.shape != (4, 4):
+        raise _error(where, f"'transform_matrix' must be 4x4, got {list(T.shape)}")
+    return intrinsics(fx, fy, cx, cy), T, (int(w), int(h))
+
+
+def camera_from_frame(frame: dict) -> Cameras:
+    """The one camera of a frame that carries its own intrinsics (``fl_x``, optional ``fl_y``,
+    ``cx``, ``cy``, ``w``, ``h``), ``transform_matrix`` (4x4 camera-to-world) and ``convention``
+    (default 'opengl'), as a render request sends it; raises CameraError naming what is wrong."""
+    if not isinstance(frame, dict):
+        raise CameraError("a camera must be a JSON object")
+    K, T, (w, h) = _frame_camera(frame, "")
+    return Cameras(K[None], convert_pose(T[None], frame.get("convention", "opengl"), "opencv"), w, h)
 
 
 def camera_file_from_dict(data: dict) -> CameraFile:
@@ -303,27 +339,14 @@ def camera_file_from_dict(data: dict) -> CameraFile:
         where = f"frame {i}"
         if not isinstance(fr, dict):
             raise CameraError(f"{where}: must be an object")
-        merged = {**data, **fr}
+        merged = {**{k: v for k, v in data.items() if k != "transform_matrix"}, **fr}  # the pose: the frame's own
         w, h = _number(merged, "w", where), _number(merged, "h", where)
         if size is None:
             size = (int(w), int(h))
         elif size != (int(w), int(h)):
             raise CameraError(f"{where}: size {int(w)}x{int(h)} differs from {size[0]}x{size[1]}")
-        fx = _number(merged, "fl_x", where)
-        fy = _number(merged, "fl_y", where) if "fl_y" in merged else fx
-        cx = _number(merged, "cx", where) if "cx" in merged else w / 2
-        cy = _number(merged, "cy", where) if "cy" in merged else h / 2
-        Ks.append(intrinsics(fx, fy, cx, cy))
-        try:
-            T = np.asarray(fr["transform_matrix"], dtype=np.float64)
-        except KeyError:
-            raise CameraError(f"{where}: missing 'transform_matrix'") from None
-        except (TypeError, ValueError):
-            raise CameraError(f"{where}: 'transform_matrix' must be a 4x4 list of numbers") from None
-        if T.shape == (3, 4):
-            T = np.concatenate([T, [[0, 0, 0, 1]]])
-        if T.shape != (4, 4):
-            raise CameraError(f"{where}: 'transform_matrix' must be 4x4, got {list(T.shape)}")
+        K, T, _ = _frame_camera(merged, where)
+        Ks.append(K)
         poses.append(T)
         fp = fr.get("file_path")
         if not isinstance(fp, str) or not fp:

@@ -21,6 +21,7 @@ from cmc.cameras import (
     Cameras,
     camera_file_from_dict,
     camera_file_to_dict,
+    camera_from_frame,
     cameras_from_llff,
     cameras_to_llff,
     convert_pose,
@@ -460,3 +461,21 @@ def test_coverage_of_a_sideways_view_of_a_wall() -> None:
     assert not inputs.coverage(K, target, depth)[:5].any()
     behind = rigid(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 0.0])  # looking along -z
     assert not inputs.coverage(K, behind, np.full((H, W), 4.0)).any()
+
+
+def test_camera_from_frame_reads_one_camera_as_the_cameras_file_does():
+    """A render request's camera (intrinsics and pose in one frame, OpenGL by default): the same
+    camera the cameras file gives for that frame; errors name the field without a frame number."""
+    pose = rigid(np.eye(3), [0.5, -1, 2]).tolist()
+    frame = {"w": 64, "h": 48, "fl_x": 50.0, "fl_y": 52.0, "cx": 30.0, "cy": 25.0, "transform_matrix": pose}
+    one = camera_from_frame(frame)
+    ref = camera_file_from_dict({**frame, "frames": [{"file_path": "x", "transform_matrix": pose}]}).cameras
+    assert (one.width, one.height) == (64, 48)
+    np.testing.assert_allclose(one.K, ref.K)
+    np.testing.assert_allclose(one.world_from_cam, ref.world_from_cam)
+    opencv = camera_from_frame({**frame, "convention": "opencv"})
+    np.testing.assert_allclose(opencv.world_from_cam[0], np.asarray(pose))
+    with pytest.raises(CameraError, match=r"^missing 'fl_x'$"):
+        camera_from_frame({k: v for k, v in frame.items() if k != "fl_x"})
+    with pytest.raises(CameraError, match=r"^'transform_matrix' must be 4x4, got \[2, 2\]$"):
+        camera_from_frame({**frame, "transform_matrix": [[1, 0], [0, 1]]})

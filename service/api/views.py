@@ -60,17 +60,14 @@ Coverage = Annotated[
 
 def _camera(body: RenderCamera, settings: Settings) -> tuple[np.ndarray, np.ndarray, int, int]:
     """K [3, 3] and world_from_cam [4, 4] in the OpenCV convention, width, height."""
-    from cmc.cameras import CameraError, camera_file_from_dict
+    from cmc.cameras import CameraError, camera_from_frame
 
     if body.w * body.h > settings.max_render_pixels:
         raise APIError(422, ErrorCode.render_too_large, f"w * h must be at most {settings.max_render_pixels} pixels")
-    frame = body.model_dump(exclude_none=True)
-    data = {k: v for k, v in frame.items() if k != "transform_matrix"}
-    data["frames"] = [{"file_path": "render", "transform_matrix": frame["transform_matrix"]}]
     try:
-        cams = camera_file_from_dict(data).cameras
+        cams = camera_from_frame(body.model_dump(exclude_none=True))
     except CameraError as e:
-        raise APIError(422, ErrorCode.invalid_cameras, str(e).replace("frame 0: ", "")) from None
+        raise APIError(422, ErrorCode.invalid_cameras, str(e)) from None
     return cams.K[0], cams.world_from_cam[0], body.w, body.h
 
 
