@@ -62,6 +62,11 @@ EXPERIMENTS: list[tuple[str, list[tuple[str, str, str]]]] = [
                 "sweep's semi-global penalties (P1, P2) (0.1, 1.0) -> (0.3, 3.0)",
                 "not adopted: fern -0.13 dB, SSIM -0.004",
             ),
+            (
+                "scenes_fern_val_sgm3_edges.json",
+                "(0.3, 3.0), P2 falling at the photo's edges (`stereo_smoothness_edges=0.05`)",
+                "candidate: fern -0.02 dB, SSIM -0.003 against the preset",
+            ),
         ],
     ),
 ]
