@@ -18,22 +18,27 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "SCENES.md"
 
+# Changes that several rows share.
+BOUNDS = "before: planes over the scene's bounds"
+FITTED = "planes fitted to the sweep"
+SGM3 = "sweep's semi-global penalties (P1, P2) (0.1, 1.0) -> (0.3, 3.0)"
+
 # (question, [(report, change vs the preset of its day, verdict)]); "" = the preset itself.
 EXPERIMENTS: list[tuple[str, list[tuple[str, str, str]]]] = [
     (
         "Planes over the depths the first sweep finds (`model.fit_depth_range`), 2026-11-26/27",
         [
-            ("view_quality_fern_now.json", "before: planes over the scene's bounds", ""),
-            ("bounds_fern_val_before.json", "before: planes over the scene's bounds", ""),
-            ("bounds_room_val_before.json", "before: planes over the scene's bounds", ""),
-            ("bounds_trex_val_before.json", "before: planes over the scene's bounds", ""),
+            ("view_quality_fern_now.json", BOUNDS, ""),
+            ("bounds_fern_val_before.json", BOUNDS, ""),
+            ("bounds_room_val_before.json", BOUNDS, ""),
+            ("bounds_trex_val_before.json", BOUNDS, ""),
             ("view_quality_synthetic_now.json", "before (the fit leaves tight bounds as they are)", ""),
-            ("bounds_fern_val_fit.json", "planes fitted to the sweep", "adopted"),
-            ("bounds_room_val_fit.json", "planes fitted to the sweep", "adopted"),
-            ("bounds_trex_val_fit.json", "planes fitted to the sweep", "adopted"),
-            ("bounds_fern_test_fit.json", "planes fitted to the sweep", "adopted"),
-            ("bounds_room_test_fit.json", "planes fitted to the sweep", "adopted"),
-            ("bounds_trex_test_fit.json", "planes fitted to the sweep", "adopted"),
+            ("bounds_fern_val_fit.json", FITTED, "adopted"),
+            ("bounds_room_val_fit.json", FITTED, "adopted"),
+            ("bounds_trex_val_fit.json", FITTED, "adopted"),
+            ("bounds_fern_test_fit.json", FITTED, "adopted"),
+            ("bounds_room_test_fit.json", FITTED, "adopted"),
+            ("bounds_trex_test_fit.json", FITTED, "adopted"),
             ("bounds_fern_test_q4_fit.json", "fitted, every near bound / 4", "within 0.02 dB"),
             ("bounds_synthetic_q4_fit.json", "fitted, every near bound / 4", "within 0.14 dB on average"),
         ],
@@ -49,17 +54,17 @@ EXPERIMENTS: list[tuple[str, list[tuple[str, str, str]]]] = [
             ),
             (
                 "scenes_room_val_sgm3.json",
-                "sweep's semi-global penalties (P1, P2) (0.1, 1.0) -> (0.3, 3.0)",
+                SGM3,
                 "room +0.37 dB: walls and ceiling take one depth",
             ),
             (
                 "scenes_trex_val_sgm3.json",
-                "sweep's semi-global penalties (P1, P2) (0.1, 1.0) -> (0.3, 3.0)",
+                SGM3,
                 "trex -0.07 dB, LPIPS-vgg -0.006",
             ),
             (
                 "scenes_fern_val_sgm3.json",
-                "sweep's semi-global penalties (P1, P2) (0.1, 1.0) -> (0.3, 3.0)",
+                SGM3,
                 "not adopted: fern -0.13 dB, SSIM -0.004",
             ),
             (
