@@ -1,17 +1,23 @@
 """Many `fast` variants at once on a lent GPU, chosen on views that are neither train nor test.
 
-Fern's RegNeRF split trains on images 1, 10, 19 and tests on 0, 8, 16; the other 14 images are
-*validation* views: a setting is judged on them (and on the synthetic set, which is ours), never
-on the test views. The test views are scored too, only to see afterwards whether validation
-predicted them; a variant is adopted only after the CPU benchmark (`cmc bench`) confirms it.
+Each real LLFF scene's RegNeRF split (``cmc.datasets.load_llff``) trains on three images and tests
+on every 8th; the rest are *validation* views: a setting is judged on them (and on the synthetic
+set, which is ours), never on the test views. The test views are scored too, only to see
+afterwards whether validation predicted them; a variant is adopted only after the CPU benchmark
+(`cmc bench`) confirms it. Validation views are also scored with the MPIs blended by inverse
+distance to the power ``--blend-powers`` (the renderer's is 2; ``cmc.geometry.blend_weights``),
+without retraining.
 
 Usage (repository root; data as in bench/gpu_run.sh):
-    PYTHONPATH=. python bench/explore_gpu.py VARIANTS.json OUT_DIR --data .gpudata/llff/fern \
-        --workers 7 --seconds 330 [--grace 120] [--synthetic posts,cards] [--device cuda] [--steps N]
+    PYTHONPATH=. python bench/explore_gpu.py VARIANTS.json OUT_DIR --data .gpudata/llff \
+        --scenes fern,room,trex --workers 7 --seconds 330 [--grace 120] [--synthetic posts,cards] \
+        [--device cuda] [--steps N] [--lpips] [--blend-powers 2,6]
 VARIANTS.json maps a name to a list of `--set` style settings (``[]`` is the preset itself).
-Every fern run comes first, then the synthetic scenes; a task not started before the deadline is
-skipped, and one still running ``--grace`` seconds after it is dropped. One JSON line per
-(variant, scene), with device, commit and date, is appended to OUT_DIR/explore.jsonl as it ends.
+Tasks run variant by variant (every scene of the first variant, then the next), so a deadline
+cuts whole variants; a task not started before the deadline is skipped, and one still running
+``--grace`` seconds after it is dropped. One JSON line per (variant, scene), with device, commit
+and date, is appended to OUT_DIR/explore.jsonl as it ends. ``--lpips``: LPIPS-vgg too (weights
+from ``$CMC_LPIPS_DIR``).
 """
 
 from __future__ import annotations
@@ -30,11 +36,12 @@ import numpy as np
 def _run(task: tuple[str, list[str], str, dict[str, Any]]) -> dict[str, Any]:
     import torch
 
+    import cmc.rendering
     from cmc.baking import BakedScene, bake
     from cmc.bench import report_header
     from cmc.config import preset_config, with_settings
-    from cmc.datasets import load_llff, wide_baseline_split
-    from cmc.metrics import psnr, ssim
+    from cmc.datasets import WIDE_SCENES, load_llff, wide_baseline_split
+    from cmc.metrics import LPIPS, psnr, ssim
     from cmc.training import Trainer
 
     name, settings, scene, opts = task
@@ -43,12 +50,13 @@ def _run(task: tuple[str, list[str], str, dict[str, Any]]) -> dict[str, Any]:
     cfg = with_settings(preset_config("fast"), settings)
     if opts.get("steps"):
         cfg = with_settings(cfg, [f"steps={opts['steps']}"])
-    if scene == "fern":
-        split = load_llff(opts["data"])
-        train, scored, kinds = split.train, [split.val, split.test], ["val", "test"]
-    else:
+    if scene in WIDE_SCENES:
         split = wide_baseline_split(scene)
         train, scored, kinds = split.train, [split.test], ["synthetic"]
+    else:
+        split = load_llff(Path(opts["data"]) / scene)
+        train, scored, kinds = split.train, [split.val, split.test], ["val", "test"]
+    lpips = LPIPS("vgg", device=device) if opts.get("lpips") else None
     t0 = time.perf_counter()
     try:
         trainer = Trainer(train, cfg, device)
@@ -64,32 +72,64 @@ def _run(task: tuple[str, list[str], str, dict[str, Any]]) -> dict[str, Any]:
         "train_s": round(train_s, 1),
         **{k: header[k] for k in ("device", "git_commit", "date")},
     }
+    blend_weights = cmc.rendering.blend_weights
+
+    def score(baked: BakedScene, views: Any) -> list[dict[str, Any]]:
+        per_view = []
+        for k, view_name in enumerate(views.names):
+            pred = baked.render(views.cameras.K[k], views.cameras.world_from_cam[k]).rgb.cpu().numpy()
+            v = {"name": view_name, "psnr": psnr(pred, views.images[k]), "ssim": ssim(pred, views.images[k])}
+            if lpips is not None:
+                v["lpips_vgg"] = lpips(pred, views.images[k])
+            per_view.append(v)
+        return per_view
+
+    def mean(per_view: list[dict[str, Any]]) -> dict[str, float]:
+        return {m: round(float(np.mean([v[m] for v in per_view])), 4) for m in per_view[0] if m != "name"}
+
     with tempfile.TemporaryDirectory() as tmp:
         baked = BakedScene.load(bake(trainer.model, Path(tmp) / "baked"), device)
         for kind, views in zip(kinds, scored, strict=True):
-            per_view = []
-            for k, view_name in enumerate(views.names):
-                pred = baked.render(views.cameras.K[k], views.cameras.world_from_cam[k]).rgb.cpu().numpy()
-                per_view.append(
-                    {"name": view_name, "psnr": psnr(pred, views.images[k]), "ssim": ssim(pred, views.images[k])}
-                )
+            per_view = score(baked, views)
             if kind == "synthetic":
                 for v, k in zip(per_view, split.test_kinds, strict=True):
                     v["kind"] = k
                 for k in sorted(set(split.test_kinds)):
-                    sel = [v for v in per_view if v["kind"] == k]
-                    rec[k] = {m: round(float(np.mean([v[m] for v in sel])), 4) for m in ("psnr", "ssim")}
-            else:
-                rec[kind] = {m: round(float(np.mean([v[m] for v in per_view])), 4) for m in ("psnr", "ssim")}
-                rec[kind + "_views"] = {v["name"]: round(v["ssim"], 4) for v in per_view}
+                    rec[k] = mean([{m: x for m, x in v.items() if m != "kind"} for v in per_view if v["kind"] == k])
+                continue
+            rec[kind] = mean(per_view)
+            rec[kind + "_views"] = {v["name"]: round(v["psnr"], 3) for v in per_view}
+            if kind != "val":
+                continue
+            for power in opts.get("blend_powers", []):
+                if power == 2:
+                    continue
+                cmc.rendering.blend_weights = _powered(blend_weights, power)
+                try:
+                    rec[f"val_blend{power:g}"] = mean(score(baked, views))
+                finally:
+                    cmc.rendering.blend_weights = blend_weights
     return rec
+
+
+def _powered(blend_weights: Any, power: float) -> Any:
+    """``blend_weights`` with inverse distance to ``power`` instead of squared distance."""
+
+    def weights(ref_centers: Any, target_center: Any, baseline: float) -> Any:
+        w = blend_weights(ref_centers, target_center, baseline) ** (power / 2)
+        return w / w.sum()
+
+    return weights
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("variants")
     ap.add_argument("out")
-    ap.add_argument("--data", default="../shared/datasets/llff/fern")
+    ap.add_argument("--data", default="../shared/datasets/llff", help="folder of LLFF scenes")
+    ap.add_argument("--scenes", default="fern", help="real scenes under --data, comma-separated")
+    ap.add_argument("--lpips", action="store_true", help="LPIPS-vgg too ($CMC_LPIPS_DIR)")
+    ap.add_argument("--blend-powers", default="2", help="inverse-distance powers of the MPI blend scored on val")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seconds", type=float, default=500)
     ap.add_argument("--synthetic", default="")
@@ -101,9 +141,18 @@ def main() -> None:
     args = ap.parse_args()
     deadline = time.time() + args.seconds
     variants: dict[str, list[str]] = json.loads(Path(args.variants).read_text())
-    opts = {"device": args.device, "data": args.data, "steps": args.steps, "deadline": deadline}
-    scenes = ["fern", *[s for s in args.synthetic.split(",") if s]]
-    tasks = [(n, s, scene, opts) for scene in scenes for n, s in variants.items()]
+    opts = {
+        "device": args.device,
+        "data": args.data,
+        "steps": args.steps,
+        "deadline": deadline,
+        "lpips": args.lpips,
+        "blend_powers": [float(p) for p in args.blend_powers.split(",")],
+    }
+    real = [s for s in args.scenes.split(",") if s]
+    synthetic = [s for s in args.synthetic.split(",") if s]
+    tasks = [(n, s, scene, opts) for n, s in variants.items() for scene in real]
+    tasks += [(n, s, scene, opts) for scene in synthetic for n, s in variants.items()]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ctx = mp.get_context("spawn")

@@ -5,21 +5,19 @@
 #   2. `cmc bench llff` on fern with the `fast` preset on CUDA (train seconds, render ms, scores);
 #   3. the `paper` preset on fern on CUDA: its step time first, then the bench with as many of
 #      its 20000 steps as the time left allows (the report's config says how many ran).
-# The data travel in .gpudata/ (ignored; ../shared stays behind): fern's images_8 and
-# poses_bounds.npy, lpips_alex.pth, and lpips_vgg.pth in float16 (the tree may carry 64 MiB;
-# float16 weights move LPIPS-vgg of the reference pairs by at most 2.4e-5). Made here once with
-#   mkdir -p .gpudata/llff/fern .gpudata/weights
-#   cp -r ../shared/datasets/llff/fern/images_8 ../shared/datasets/llff/fern/poses_bounds.npy .gpudata/llff/fern/
-#   cp ../shared/weights/lpips_alex.pth .gpudata/weights/
-#   .venv/bin/python -c "import torch; sd = torch.load('../shared/weights/lpips_vgg.pth'); \
-#     torch.save({k: v.half() for k, v in sd.items()}, '.gpudata/weights/lpips_vgg.pth')"
-# and carried with the device tool's `carry: [".gpudata"]`.
-# Usage: GIT_COMMIT=$(git rev-parse --short HEAD) bash bench/gpu_run.sh [SECONDS [STAGE...]]
-# with STAGE tests, fast or paper (default: all three, in that order).
+#   4. profile: bench/profile_job.py on fern (seconds per stage of one `fast` job);
+#   5. explore: bench/explore_gpu.py, the variants in $VARIANTS (a JSON file) on the validation
+#      views of fern, room and trex (LPIPS-vgg too), then the synthetic scene posts, for the
+#      seconds left less 150.
+# The data travel in .gpudata/ (ignored; ../shared stays behind), made here once with
+# `python bench/gpudata.py pack` and carried with the device tool's `carry: [".gpudata"]`.
+# Usage: GIT_COMMIT=$(git rev-parse --short HEAD) [VARIANTS=F.json] bash bench/gpu_run.sh [SECONDS [STAGE...]]
+# with STAGE tests, fast, paper, profile or explore (default: the first three, in that order).
 set -u
 budget=${1:-540}
 shift
 stages=" ${*:-tests fast paper} "
+python3 bench/gpudata.py unpack
 start=$(date +%s)
 left() { echo $((budget - ($(date +%s) - start))); }
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 CMC_LPIPS_DIR=$PWD/.gpudata/weights
@@ -80,5 +78,17 @@ if [ -n "$steps" ] && [ "$steps" -gt 0 ]; then
   timeout $(( $(left) - 10 )) python3 -m cmc.cli bench llff --data .gpudata/llff --scenes fern --preset paper \
     --device cuda --set steps="$steps" --out "$OUT/fern_paper_cuda.json" 2>&1 | tail -n 20
 fi
+fi
+if [[ $stages == *" profile "* ]]; then
+echo "== profile of one fast job on fern, cuda ($(left) s left)"
+timeout 120 python3 bench/profile_job.py --data .gpudata/llff/fern --device cuda \
+  --out "$OUT/profile_fern_cuda.json" 2>&1 | tail -n 25
+fi
+
+if [[ $stages == *" explore "* ]]; then
+echo "== explore $VARIANTS ($(left) s left)"
+python3 bench/explore_gpu.py "$VARIANTS" "$OUT" --data .gpudata/llff --scenes fern,room,trex \
+  --synthetic posts --lpips --blend-powers 2,4,8 --workers 9 --seconds $(( $(left) - 150 )) --grace 130 2>&1 \
+  | cut -c1-400 | tail -n 40
 fi
 echo "== done ($(left) s left)"

@@ -56,6 +56,9 @@ class LossConfig:
     recon_only_fraction: float = 0.3  # first fraction of steps uses L_MSE only (paper: 15/50 epochs)
     ac_geometry_only: bool = False  # L_ac moves alpha only, not colours (see bench/RESULTS.md)
     cross_view_colour: float = 1.0  # factor on the colour gradients of MPI i from input view j != i
+    # Penalty on each ray's colour error e = C_i(r) - C_gt(r): "squared" ||e||^2 (Eq. 4.5) or
+    # "charbonnier" sqrt(||e||^2 + 1e-6) - 1e-3 (an L1 that stays smooth at 0; cmc.losses).
+    reconstruction: Literal["squared", "charbonnier"] = "squared"
 
 
 @dataclass

@@ -1,0 +1,149 @@
+"""Where the time of one `fast` job goes: model build, training, bake, first render.
+
+Stages, each timed with the device synchronised at its ends:
+  * ``model build``: ``Trainer(...)``, split into the plane sweeps that place the planes and fit
+    the depth range (``cmc.model.sweep_statistics``), the sweeps that set each MPI's initial alpha
+    (``cmc.model.sweep_probabilities``) and the rest;
+  * ``train``: every step of ``Trainer.train_step`` done here in three timed parts (forward =
+    ``compute_losses``, backward, Adam step), per loss phase (reconstruction only, then all terms);
+  * ``bake`` (``cmc.baking.bake``), ``load`` (``BakedScene.load``), the first render of a test
+    view and the median of ``--renders`` more.
+Pose estimation is not in it (bench/poses_fern.md times it on the phone photos). The split
+training loop syncs the device three times a step, which the service's loop does not.
+
+Usage (repository root):
+    PYTHONPATH=. python bench/profile_job.py --data ../shared/datasets/llff/fern --device cpu \
+        --out bench/profile_job_fern_cpu.json
+Prints a markdown table (seconds and share per stage) and writes it with the raw timings as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import torch
+
+import cmc.model
+from cmc.baking import BakedScene, bake
+from cmc.bench import report_header
+from cmc.config import preset_config, with_settings
+from cmc.datasets import load_llff
+from cmc.training import Trainer, lr_at
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--data", required=True, help="an LLFF scene folder (images_8, poses_bounds.npy)")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--preset", default="fast")
+    ap.add_argument("--set", action="append", default=[], help="a config override, as in `cmc train`")
+    ap.add_argument("--renders", type=int, default=10)
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args()
+    device = torch.device(args.device)
+
+    def sync() -> None:
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    spent: dict[str, float] = defaultdict(float)
+
+    def timed(name: str, fn: Any) -> Any:
+        def wrapper(*a: Any, **kw: Any) -> Any:
+            sync()
+            t = time.perf_counter()
+            out = fn(*a, **kw)
+            sync()
+            spent[name] += time.perf_counter() - t
+            return out
+
+        return wrapper
+
+    cfg = with_settings(preset_config(args.preset), args.set)
+    t = time.perf_counter()
+    split = load_llff(Path(args.data))
+    spent["load photos"] = time.perf_counter() - t
+
+    cmc.model.sweep_statistics = timed("model build: sweeps placing the planes", cmc.model.sweep_statistics)
+    cmc.model.sweep_probabilities = timed("model build: sweeps setting alpha", cmc.model.sweep_probabilities)
+    sync()
+    t = time.perf_counter()
+    trainer = Trainer(split.train, cfg, device)
+    sync()
+    build = time.perf_counter() - t
+    spent["model build: rest"] = build - sum(v for k, v in spent.items() if k.startswith("model build"))
+
+    per_step: dict[str, list[float]] = defaultdict(list)
+    first_full = int(cfg.loss.recon_only_fraction * cfg.steps)
+    for step in range(cfg.steps):
+        phase = "reconstruction only" if step < first_full else "all terms"
+        for g in trainer.optimizer.param_groups:
+            g["lr"] = lr_at(cfg, step)
+        trainer.optimizer.zero_grad(set_to_none=True)
+        sync()
+        t0 = time.perf_counter()
+        losses = trainer.compute_losses(step)
+        sync()
+        t1 = time.perf_counter()
+        losses["total"].backward()
+        sync()
+        t2 = time.perf_counter()
+        trainer.optimizer.step()
+        sync()
+        t3 = time.perf_counter()
+        trainer.step = step + 1
+        for part, dt in (("forward", t1 - t0), ("backward", t2 - t1), ("optimizer", t3 - t2)):
+            spent[f"train ({phase}): {part}"] += dt
+            per_step[f"{phase}: {part}"].append(dt)
+
+    test = split.test
+    with tempfile.TemporaryDirectory() as tmp:
+        t = time.perf_counter()
+        path = bake(trainer.model, Path(tmp) / "baked")
+        sync()
+        spent["bake"] = time.perf_counter() - t
+        t = time.perf_counter()
+        baked = BakedScene.load(path, device)
+        sync()
+        spent["load baked scene"] = time.perf_counter() - t
+        render = timed("first render", baked.render)
+        render(test.cameras.K[0], test.cameras.world_from_cam[0])
+        times = []
+        for k in range(args.renders):
+            sync()
+            t = time.perf_counter()
+            baked.render(test.cameras.K[k % len(test)], test.cameras.world_from_cam[k % len(test)])
+            sync()
+            times.append(time.perf_counter() - t)
+
+    total = sum(spent.values())
+    rows = [(name, s, s / total) for name, s in spent.items()]
+    table = "| stage | s | share |\n|---|---|---|\n"
+    table += "".join(f"| {n} | {s:.2f} | {100 * f:.1f} % |\n" for n, s, f in rows)
+    table += f"| **total** | **{total:.1f}** | |\n"
+    medians = {k: statistics.median(v) * 1000 for k, v in per_step.items()}
+    table += "\nMedian ms per step: " + ", ".join(f"{k} {v:.1f}" for k, v in medians.items())
+    table += f"; a later render (median of {args.renders}): {statistics.median(times) * 1000:.1f} ms.\n"
+    print(table)
+    report = {
+        **report_header(cfg, device),
+        "scene": Path(args.data).name,
+        "settings": args.set,
+        "stages_s": {n: round(s, 3) for n, s, _ in rows},
+        "total_s": round(total, 2),
+        "median_step_ms": {k: round(v, 2) for k, v in medians.items()},
+        "render_ms_median": round(statistics.median(times) * 1000, 2),
+        "table": table,
+    }
+    Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
