@@ -14,7 +14,10 @@ training loop syncs the device three times a step, which the service's loop does
 Usage (repository root):
     PYTHONPATH=. python bench/profile_job.py --data ../shared/datasets/llff/fern --device cpu \
         --out bench/profile_job_fern_cpu.json
-Prints a markdown table (seconds and share per stage) and writes it with the raw timings as JSON.
+prints a markdown table (seconds and share per stage) and writes it with the raw timings as JSON;
+    python bench/profile_job.py --update-md bench/PROFILE.md REPORT.json [REPORT.json ...]
+rewrites the table between ``<!-- profile-table -->`` and ``<!-- /profile-table -->`` in that
+file, one column pair per report.
 """
 
 from __future__ import annotations
@@ -38,15 +41,50 @@ from cmc.datasets import load_llff
 from cmc.training import Trainer, lr_at
 
 
+def side_by_side(reports: list[dict[str, Any]]) -> str:
+    """One markdown table of several reports' stages: seconds and share per report."""
+    stages = list(dict.fromkeys(n for r in reports for n in r["stages_s"]))
+    head = " | ".join(f"{r['device']}, {r['date']}, {r['git_commit']}: s | share" for r in reports)
+    lines = [f"| stage | {head} |", "|---|" + "---|---|" * len(reports)]
+    sizes = [f"{r['config']['steps']} steps, {r['config']['model']['num_planes']} planes | " for r in reports]
+    lines.append("| the job | " + " | ".join(sizes) + "|")
+    for n in stages:
+        cells = []
+        for r in reports:
+            s = r["stages_s"].get(n)
+            cells += ["", ""] if s is None else [f"{s:.2f}", f"{100 * s / r['total_s']:.1f} %"]
+        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    lines.append("| **total** | " + " | ".join(f"**{r['total_s']:.1f}** | " for r in reports) + "|")
+    steps = [", ".join(f"{k} {v:.1f}" for k, v in r["median_step_ms"].items()) for r in reports]
+    lines.append("| median ms per step | " + " | ".join(f"{s} | " for s in steps) + "|")
+    lines.append("| later render, ms | " + " | ".join(f"{r['render_ms_median']:.1f} | " for r in reports) + "|")
+    return "\n".join(lines) + "\n"
+
+
+def update_md(md: Path, report_paths: list[str]) -> None:
+    reports = [json.loads(Path(p).read_text()) for p in report_paths]
+    text = md.read_text()
+    start, end = "<!-- profile-table -->\n", "<!-- /profile-table -->"
+    a, b = text.index(start) + len(start), text.index(end)
+    md.write_text(text[:a] + side_by_side(reports) + text[b:])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--data", required=True, help="an LLFF scene folder (images_8, poses_bounds.npy)")
+    ap.add_argument("--update-md", metavar="MD", help="rewrite MD's profile table from the reports given")
+    ap.add_argument("reports", nargs="*", help="with --update-md: the reports, one column pair each")
+    ap.add_argument("--data", help="an LLFF scene folder (images_8, poses_bounds.npy)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--set", action="append", default=[], help="a config override, as in `cmc train`")
     ap.add_argument("--renders", type=int, default=10)
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--out")
     args = ap.parse_args()
+    if args.update_md:
+        update_md(Path(args.update_md), args.reports)
+        return
+    if not (args.data and args.out):
+        ap.error("--data and --out are needed to profile a job")
     device = torch.device(args.device)
 
     def sync() -> None:

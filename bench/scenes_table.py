@@ -22,6 +22,7 @@ OUT = HERE / "SCENES.md"
 BOUNDS = "before: planes over the scene's bounds"
 FITTED = "planes fitted to the sweep"
 SGM3 = "sweep's semi-global penalties (P1, P2) (0.1, 1.0) -> (0.3, 3.0)"
+SGM2_300 = "penalties (0.1, 1.0) -> (0.2, 2.0), 400 -> 300 steps"
 
 # (question, [(report, change vs the preset of its day, verdict)]); "" = the preset itself.
 EXPERIMENTS: list[tuple[str, list[tuple[str, str, str]]]] = [
@@ -70,8 +71,15 @@ EXPERIMENTS: list[tuple[str, list[tuple[str, str, str]]]] = [
             (
                 "scenes_fern_val_sgm3_edges.json",
                 "(0.3, 3.0), P2 falling at the photo's edges (`stereo_smoothness_edges=0.05`)",
-                "candidate: fern -0.02 dB, SSIM -0.003 against the preset",
+                "not adopted: trex -0.33 dB on its validation views (bench/EXPLORE.md); option deleted",
             ),
+        ],
+    ),
+    (
+        "Sweep penalties (0.2, 2.0) and 300 steps, chosen on the validation views in bench/EXPLORE.md, 2026-11-27 "
+        "(before: the rows fitted to the sweep above)",
+        [
+            ("view_quality_synthetic_sgm2_steps300.json", SGM2_300, "adopted: synthetic -0.01 / -0.01 / +0.10 dB"),
         ],
     ),
 ]

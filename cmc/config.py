@@ -56,9 +56,6 @@ class LossConfig:
     recon_only_fraction: float = 0.3  # first fraction of steps uses L_MSE only (paper: 15/50 epochs)
     ac_geometry_only: bool = False  # L_ac moves alpha only, not colours (see bench/RESULTS.md)
     cross_view_colour: float = 1.0  # factor on the colour gradients of MPI i from input view j != i
-    # Penalty on each ray's colour error e = C_i(r) - C_gt(r): "squared" ||e||^2 (Eq. 4.5) or
-    # "charbonnier" sqrt(||e||^2 + 1e-6) - 1e-3 (an L1 that stays smooth at 0; cmc.losses).
-    reconstruction: Literal["squared", "charbonnier"] = "squared"
 
 
 @dataclass
@@ -99,12 +96,12 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       the first 30 %, then lambda_ac = lambda_dc = 1.
     * ``fast``: explicit multi-resolution plane textures (see cmc.fields.PyramidPlaneField),
       alpha initialised by an occlusion-aware, edge-aware plane sweep with the AD-Census cost
-      (``stereo_cost="ad_census"``) and semi-global aggregation (``stereo_smoothness=(0.1,
-      1.0)``), softmin temperature 0.3, run on a grid twice as fine as
-      alpha's finest level while that grid holds at most ``stereo_max_texels``
-      (``stereo_supersample=2``), the margin beyond the photo starting with the border's
-      geometry (``stereo_extend_border``); 56 planes, the paper's
-      losses except L_ac (which blurred novel views in the ablation), the depth-consistency terms
+      (``stereo_cost="ad_census"``) and semi-global aggregation (``stereo_smoothness=(0.2,
+      2.0)``: an untextured wall takes the depth its neighbours agree on), softmin temperature
+      0.3, run on a grid twice as fine as alpha's finest level while that grid holds at most
+      ``stereo_max_texels`` (``stereo_supersample=2``), the margin beyond the photo starting
+      with the border's geometry (``stereo_extend_border``); 56 planes, the paper's losses
+      except L_ac (which blurred novel views in the ablation), the depth-consistency terms
       in an occlusion-tolerant form (cmc.losses.robust_depth_consistency), plus a concentration
       prior on each ray's opacity (cmc.losses.distortion) and a binary-entropy prior on the alpha
       a ray sees (cmc.losses.alpha_entropy: no faint fog in front of surfaces), a full-resolution
@@ -123,7 +120,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       the views do not depend on how loose the bounds are), each input
       photo's colour response learnt and renders shown in their mean
       (``model.exposure_compensation``: photos shot at different exposures do not bend the
-      geometry), 400 steps: 4-6 minutes on fern (504x378), 2 CPU cores.
+      geometry), 300 steps.
     """
     if name == "paper":
         cfg = TrainConfig(
@@ -136,65 +133,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
             model=ModelConfig(field_type="mlp", num_planes=80),
         )
     elif name == "fast":
-        # Measured on fern and the wide-baseline synthetic set (bench/RESULTS.md, bench/DIAGNOSIS.md):
-        # the concentration prior keeps each ray's opacity on one surface (without it training
-        # spreads alpha into fog: wrong depth, blur, doubling between the input views); with opacity
-        # concentrated, the depth-consistency terms pay only in their occlusion-tolerant form, at a
-        # weight that suits it; L_ac blurred the views on fern and still does not pay. The entropy
-        # prior clears the faint alpha left in front of surfaces, which doubled them between the
-        # inputs: synthetic halfway views +0.8 dB, fern LPIPS-alex 0.238 -> 0.196, faster renders;
-        # at 0.003 instead of its first 0.01 it snaps fewer surfaces onto a plane: fern 22.89 / 0.733
-        # / 0.216 -> 23.05 / 0.742 / 0.213 (PSNR / SSIM / LPIPS-vgg, every test view better), the
-        # synthetic set the same within 0.01 dB, baked renders 1.36x slower (more faint alpha).
-        # A base colour per group of planes: LPIPS-vgg 0.267 -> 0.260 on fern, 0.078 -> 0.070 at the
-        # synthetic halfway views, PSNR unchanged or better. Hidden layers in alpha behind
-        # confidently placed outlines paid once (synthetic halfway +1.2 dB) but nothing once the
-        # sweep started better (removed; bench/DIAGNOSIS.md).
-        # Cross-view colour gradients at 0.25: each MPI reproduced its own photo at 28-29 dB, pulled
-        # toward a compromise with the other photos; now at 30-31.5 dB. Fern +0.07 dB, LPIPS-vgg
-        # -0.006 (every test view better); synthetic near views +0.41 dB, halfway the same PSNR
-        # with LPIPS-vgg 0.003 worse. 0.1 scored the same on fern; a gate by the reference camera's
-        # visibility did worse. 4096 rays per input view and step instead of 2048: the textures
-        # were still underfitted at step 400 (the loss still falling); fern LPIPS-vgg 0.253 -> 0.243
-        # for 1.5x the training time (600 steps of 2048 rays did about as well; a later or earlier
-        # end of the learning-rate decay did worse). The background's colour continued behind every
-        # texel's visible surface, not only behind confidently placed outlines: synthetic halfway
-        # +0.36 dB, beyond +0.89 dB, near +0.06 dB (every scene better), fern +0.06 dB, SSIM +0.002
-        # (continuing the alpha layer behind every outline too cost fern 0.8 dB, above). The sweep's
-        # cost with a census term (AD-Census): its best plane lies within one plane of fern's SfM
-        # points at 80 % of them instead of 75 % (synthetic set 0.91-0.94 against 0.87-0.93), and
-        # the softmin at 0.1 is confident on 27 % of fern's texels instead of 13 %, at a higher
-        # precision; fern 22.45 -> 22.80 dB, SSIM 0.704 -> 0.725, LPIPS-vgg 0.243 -> 0.226 (every
-        # test view better), synthetic halfway +0.92 dB, beyond +0.45 dB, near +0.07 dB. Base colours
-        # sampled bicubically, in training and in every renderer: fern the same PSNR and SSIM,
-        # LPIPS-alex 0.170 -> 0.161, LPIPS-vgg 0.225 -> 0.222; synthetic LPIPS-vgg 0.058 -> 0.047
-        # halfway, 0.057 -> 0.044 near, PSNR +0.04 / +0.12 / -0.04 dB halfway / near / beyond;
-        # renders 1.85x slower (a 4 x 4 colour footprint). A base colour per group of 6 planes
-        # instead of 12 (8 groups): fern 22.88 -> 22.93 dB, SSIM 0.727 -> 0.729, LPIPS-vgg 0.222 ->
-        # 0.219 (every test view better or the same); synthetic halfway +0.01 dB, near -0.02 dB,
-        # beyond +0.04 dB; training time within the host's noise (fern 282 s against 292 s the same
-        # day), no serving cost (the bake holds a texture per plane either way). On the previous
-        # preset the same change measured alike (fern +0.03 dB). Planes spaced by where the plane
-        # sweep finds surfaces (a quarter uniform, the rest by the cube root of the sweep's
-        # density): a surface lies nearer a plane, so views far from the inputs see it less
-        # displaced; synthetic beyond +0.37 dB, halfway +0.04, near +0.02 (`slanted` near -0.43),
-        # LPIPS-vgg and depth error better in every group; fern SSIM +0.003, LPIPS-vgg -0.003,
-        # PSNR -0.04 dB (view 16 SSIM +0.008); no serving cost (still 48 planes). Each photo's colour
-        # response learnt (exposure and white balance, as phones set them per shot), renders in the
-        # mean one: with the synthetic inputs at gains 1, 1.15, 0.87, halfway 28.00 -> 32.15 dB, near
-        # 26.96 -> 32.27, beyond 22.29 -> 25.31, depth error 1.0-1.3 % -> 0.7-0.9 %; at equal
-        # exposure (fern, the synthetic set) the same scores within 0.03 dB. Then four settings
-        # chosen together on fern's validation views (the 14 images neither trained on nor tested:
-        # bench/explore_gpu.py, 37 variants) and confirmed on the synthetic set: 56 planes instead
-        # of 48 (a surface snapped to a plane is off by less; 64 would pass the 200 MB a loaded
-        # scene may take), the sweep's softmin at 0.3 instead of 0.2 (a softer start that training
-        # settles), cross-view colour gradients at 0.1 instead of 0.25, and the hidden layers in alpha
-        # gated at 0.7 instead of 0.5, which left them doing nothing (without them: fern validation
-        # and the synthetic set within 0.02 dB), so they went. Validation SSIM 0.686 -> 0.700; fern
-        # 23.05 / 0.742 / 0.213 -> 23.36 / 0.753 / 0.206 (PSNR / SSIM / LPIPS-vgg); synthetic halfway
-        # +0.15 dB, beyond +0.21, near -0.02 (`cards` -0.17, `slanted` +0.11); renders 1.2-1.3x slower.
-        # The planes over the depths where the first sweep finds the scene (bench/SCENES.md): room and
-        # trex, whose bounds are 3-5x looser than LLFF's, gained 0.9 and 1.8 dB on their validation views.
+        # Why each setting, with its measurements: bench/PRESET_HISTORY.md.
         loss = LossConfig(
             lambda_ac=0.0,
             lambda_distortion=0.01,
@@ -215,11 +154,11 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
                 stereo_hidden_colour_everywhere=True,
                 stereo_cost="ad_census",
                 stereo_temperature=0.3,
-                stereo_smoothness=(0.1, 1.0),
+                stereo_smoothness=(0.2, 2.0),
                 stereo_supersample=2,
             ),
         )
-        cfg = TrainConfig(preset="fast", rays_per_view=4096, loss=loss, model=model)
+        cfg = TrainConfig(preset="fast", steps=300, rays_per_view=4096, loss=loss, model=model)
     else:
         raise ConfigError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
     return replace(cfg, **overrides)

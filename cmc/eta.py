@@ -33,7 +33,7 @@ REFERENCE_STEP_S = 0.60
 # TrainConfig.steps of each preset and the fast preset's rays_per_view (cmc.config.preset_config
 # needs torch to import; the pose-estimation worker does not load it). tests/test_eta.py checks
 # that they agree.
-PRESET_STEPS = {"fast": 400, "paper": 20000}
+PRESET_STEPS = {"fast": 300, "paper": 20000}
 FAST_RAYS_PER_VIEW = 4096
 
 

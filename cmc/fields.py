@@ -120,8 +120,6 @@ class PyramidFieldConfig:
     # (P1, P2) of semi-global aggregation of the sweep's cost (cmc.planesweep.semi_global), in
     # cost units; P2 = 0: off.
     stereo_smoothness: tuple[float, float] = (0.0, 0.0)
-    # > 0: P2 falls at the reference photo's edges, exp(-colour difference / this) (cmc.planesweep.semi_global)
-    stereo_smoothness_edges: float = 0.0
     stereo_supersample: int = 1  # the sweep runs on a grid this many times finer than alpha's finest level
     # ... as long as that grid holds at most this many texels (cmc.planesweep.affordable_supersample)
     stereo_max_texels: int = 2**19

@@ -25,20 +25,12 @@ def _mask(o: RayOutput) -> torch.Tensor:
     return (o.acc.detach() > 0.5).float()
 
 
-def reconstruction_loss(outs: Sequence[RayOutput], target_rgb: torch.Tensor, penalty: str = "squared") -> torch.Tensor:
-    """Eq. 4.5 for one input view: mean over MPIs and rays of ||C_i(r) - C_gt(r)||^2
-    (``penalty="squared"``), or of the Charbonnier penalty sqrt(||e||^2 + 1e-6) - 1e-3
-    (``"charbonnier"``: an L1 on the colour error, smooth at 0, less pulled by outliers).
+def reconstruction_loss(outs: Sequence[RayOutput], target_rgb: torch.Tensor) -> torch.Tensor:
+    """Eq. 4.5 for one input view: mean over MPIs and rays of ||C_i(r) - C_gt(r)||^2.
 
     Shape: target_rgb [R, 3].
     """
-    if penalty not in ("squared", "charbonnier"):
-        raise ValueError(f"unknown reconstruction penalty {penalty!r}")
-    terms = []
-    for o in outs:
-        sq = ((o.rgb - target_rgb) ** 2).sum(-1)
-        per_ray = sq if penalty == "squared" else (sq + 1e-6).sqrt() - 1e-3
-        terms.append((_mask(o) * per_ray).mean())
+    terms = [(_mask(o) * ((o.rgb - target_rgb) ** 2).sum(-1)).mean() for o in outs]
     return torch.stack(terms).mean()
 
 

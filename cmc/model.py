@@ -78,7 +78,6 @@ def sweep_probabilities(
         extend_border=cfg.stereo_extend_border,
         cost=cfg.stereo_cost,
         smoothness=tuple(cfg.stereo_smoothness),
-        smoothness_edges=cfg.stereo_smoothness_edges,
         supersample=affordable_supersample(h, w, cfg.stereo_supersample, cfg.stereo_max_texels) if supersample else 1,
     )
 

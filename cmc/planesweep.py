@@ -46,7 +46,6 @@ def plane_sweep_weights(
     extend_border: bool = False,
     cost: str = "ad",
     smoothness: tuple[float, float] = (0.0, 0.0),
-    smoothness_edges: float = 0.0,
     supersample: int = 1,
 ) -> torch.Tensor:
     """Per-texel probability that each plane of MPI ``ref`` holds the visible surface.
@@ -78,8 +77,6 @@ def plane_sweep_weights(
             "ad"; the sum of the two saturated terms, in [0, 2), for "ad_census").
         smoothness: (P1, P2) of semi-global aggregation (:func:`semi_global`) of the
             window-averaged cost before the softmin; P2 = 0: none.
-        smoothness_edges: > 0: P2 falls where the reference photo has an edge (colour scale of
-            that fall, :func:`semi_global`); 0: P2 everywhere.
         supersample: run the sweep on a grid this many times finer in each direction (the
             window scaled with it) and average the probabilities back over each texel: a texel
             straddling a depth edge then holds both surfaces in proportion, and thin structures
@@ -106,7 +103,6 @@ def plane_sweep_weights(
             extend_border=extend_border,
             cost=cost,
             smoothness=smoothness,
-            smoothness_edges=smoothness_edges,
         )
         return F.avg_pool2d(fine[None], supersample)[0]
     fr = frames[ref]
@@ -148,7 +144,7 @@ def plane_sweep_weights(
     flat = 0.5 if cost == "ad" else 2 - math.exp(-0.5 / AD_SCALE) - math.exp(-0.5 / CENSUS_SCALE)
     c = torch.where(seen_t.any(0), c, torch.full_like(c, flat))
     if smoothness[1] > 0:
-        c = semi_global(c, *smoothness, guide=ref_grid if smoothness_edges > 0 else None, edge_scale=smoothness_edges)
+        c = semi_global(c, *smoothness)
     probs = torch.softmax(-c / temperature, dim=0)
     if extend_border:
         uv = uv_ref.reshape(height, width, 2)
@@ -243,9 +239,7 @@ def alpha_from_weights(weights: torch.Tensor, lo: float = 0.01, hi: float = 0.99
     return (weights / remaining.clamp_min(1e-6)).clamp(lo, hi)
 
 
-def semi_global(
-    cost: torch.Tensor, p1: float, p2: float, guide: torch.Tensor | None = None, edge_scale: float = 0.0
-) -> torch.Tensor:
+def semi_global(cost: torch.Tensor, p1: float, p2: float) -> torch.Tensor:
     """Semi-global aggregation (Hirschmüller 2008) of a plane-sweep cost [D, h, w] along the four
     axis directions -> [D, h, w], the mean of the four path costs.
 
@@ -253,34 +247,19 @@ def semi_global(
     texel: the same plane, a neighbouring plane (+ ``p1``) or any plane (+ ``p2``), less the
     previous texel's minimum (so the sums stay bounded). Surfaces are piecewise smooth in depth,
     so a texel whose own cost is ambiguous (untextured, or seen by one view) takes the plane its
-    neighbours along the four lines agree on, while a clear jump still pays only ``p2``.
+    neighbours along the four lines agree on, while a clear jump still pays only ``p2``."""
 
-    With ``guide`` ([3, h, w], the reference photo on the same grid) a jump between two texels
-    pays ``max(p1, p2 exp(-g / edge_scale))``, g the mean absolute colour difference of the two
-    texels: depth may jump where the photo has an edge (an outline), and flat colour (a wall)
-    holds one depth at the full ``p2``."""
-
-    def path(c: torch.Tensor, g: torch.Tensor | None) -> torch.Tensor:  # left to right along the last axis
-        jump = None
-        if g is not None:  # [h, w - 1] the penalty of a jump between texels x - 1 and x
-            jump = (p2 * torch.exp(-(g[:, :, 1:] - g[:, :, :-1]).abs().mean(0) / edge_scale)).clamp_min(p1)
+    def path(c: torch.Tensor) -> torch.Tensor:  # left to right along the last axis
         out = [c[:, :, 0]]
         wall = torch.full_like(c[:1, :, 0], float("inf"))
         for x in range(1, c.shape[2]):
             prev = out[-1]
             low = prev.amin(0)
             step = torch.minimum(torch.cat([prev[1:], wall]), torch.cat([wall, prev[:-1]])) + p1
-            far = low + (p2 if jump is None else jump[:, x - 1])
-            out.append(c[:, :, x] + torch.minimum(torch.minimum(prev, step), far[None]) - low)
+            out.append(c[:, :, x] + torch.minimum(torch.minimum(prev, step), (low + p2)[None]) - low)
         return torch.stack(out, 2)
 
-    def flip(t: torch.Tensor | None) -> torch.Tensor | None:
-        return None if t is None else t.flip(2)
-
-    def swap(t: torch.Tensor | None) -> torch.Tensor | None:
-        return None if t is None else t.transpose(1, 2)
-
-    ct, gt = swap(cost), swap(guide)
-    total = path(cost, guide) + path(cost.flip(2), flip(guide)).flip(2)
-    total = total + (path(ct, gt) + path(ct.flip(2), flip(gt)).flip(2)).transpose(1, 2)
+    ct = cost.transpose(1, 2)
+    total = path(cost) + path(cost.flip(2)).flip(2)
+    total = total + (path(ct) + path(ct.flip(2)).flip(2)).transpose(1, 2)
     return total / 4

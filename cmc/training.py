@@ -159,11 +159,7 @@ class Trainer:
             for t in range(len(by_target)):
                 dst = t if t < n else None
                 by_target[t] = [replace(o, rgb=exposure.convert(o.rgb, i, dst)) for i, o in enumerate(by_target[t])]
-        losses = {
-            "mse": torch.stack(
-                [reconstruction_loss(by_target[j], targets[j], lc.reconstruction) for j in range(n)]
-            ).mean()
-        }
+        losses = {"mse": torch.stack([reconstruction_loss(by_target[j], targets[j]) for j in range(n)]).mean()}
         if lc.depth_consistency == "cauchy":
             scale = 1.0 / (self.model.cfg.num_planes - 1)
             dc_loss = lambda o: robust_depth_consistency(o, self.model.near, self.model.far, scale)  # noqa: E731
