@@ -19,52 +19,52 @@ PRESETS: tuple[Preset, ...] = ("paper", "fast")
 
 @dataclass
 class ModelConfig:
-    """The per-view MPIs."""
+    """The per-view MPIs (defaults: the ``fast`` preset's)."""
 
     field_type: Literal["mlp", "pyramid"] = "pyramid"
-    num_planes: int = 48  # D planes per MPI between near and far
-    # Spacing of the planes in disparity: 1 = uniform; below 1, this share of the planes is spread
-    # uniformly and the rest follows where a plane sweep finds the scene's surfaces
-    # (cmc.model.sweep_statistics, cmc.geometry.content_plane_depths), so that a surface lies
-    # nearer a plane and a view far from the inputs sees it less displaced.
-    plane_density_floor: float = 1.0
+    num_planes: int = 56  # D planes per MPI
+    # Spacing of the planes in disparity: 1 = uniform between near and far; below 1, this share
+    # of the planes is spread uniformly and the rest follows where a plane sweep finds the scene's
+    # surfaces (cmc.model.sweep_statistics, cmc.geometry.content_plane_depths), so that a surface
+    # lies nearer a plane and a view far from the inputs sees it less displaced.
+    plane_density_floor: float = 0.25
     # With plane_density_floor below 1: the planes span only the depths where the first plane sweep
     # finds the scene's surfaces (cmc.geometry.occupied_depth_range), not all of the scene's
     # near/far bounds, so the views do not depend on how tight those bounds are.
-    fit_depth_range: bool = False
+    fit_depth_range: bool = True
     margin: float = 1.2  # plane extent relative to the reference image (see MPIFrame)
     # Learn each input photo's colour response (gain and offset per channel, cmc.model.ExposureResponse),
     # so that an MPI is compared with another input photo in that photo's exposure and white balance.
-    exposure_compensation: bool = False
+    exposure_compensation: bool = True
     mlp: MLPFieldConfig = field(default_factory=MLPFieldConfig)
     pyramid: PyramidFieldConfig = field(default_factory=PyramidFieldConfig)
 
 
 @dataclass
 class LossConfig:
-    """Loss weights (paper Eq. 4.5-4.8). A weight of 0 switches a term off (ablations)."""
+    """Loss weights (paper Eq. 4.5-4.8 and our priors; defaults: the ``fast`` preset's). A weight
+    of 0 switches a term off."""
 
-    lambda_dc_input: float = 1.0  # depth consistency between MPIs at the input views (L_dc^I)
-    lambda_ac: float = 1.0  # appearance consistency between MPIs at unseen poses (Eq. 4.6)
-    lambda_dc: float = 1.0  # depth consistency between MPIs at unseen poses (Eq. 4.7)
-    lambda_smooth: float = 0.0  # total variation of the finest alpha level (pyramid fields only)
-    lambda_distortion: float = 0.0  # concentration of each ray's opacity (cmc.losses.distortion)
+    lambda_dc_input: float = 0.01  # depth consistency between MPIs at the input views (L_dc^I)
+    lambda_ac: float = 0.0  # appearance consistency between MPIs at unseen poses (Eq. 4.6)
+    lambda_dc: float = 0.01  # depth consistency between MPIs at unseen poses (Eq. 4.7)
+    lambda_distortion: float = 0.01  # concentration of each ray's opacity (cmc.losses.distortion)
     # Form of both depth-consistency terms: "squared" (the paper's, on depth / (far - near)) or
     # "cauchy" (occlusion-tolerant, on disparity; cmc.losses.robust_depth_consistency).
-    depth_consistency: Literal["squared", "cauchy"] = "squared"
-    lambda_alpha_entropy: float = 0.0  # visible alpha pushed to 0 or 1 (cmc.losses.alpha_entropy)
+    depth_consistency: Literal["squared", "cauchy"] = "cauchy"
+    lambda_alpha_entropy: float = 0.003  # visible alpha pushed to 0 or 1 (cmc.losses.alpha_entropy)
     recon_only_fraction: float = 0.3  # first fraction of steps uses L_MSE only (paper: 15/50 epochs)
-    ac_geometry_only: bool = False  # L_ac moves alpha only, not colours (see bench/RESULTS.md)
-    cross_view_colour: float = 1.0  # factor on the colour gradients of MPI i from input view j != i
+    cross_view_colour: float = 0.1  # factor on the colour gradients of MPI i from input view j != i
 
 
 @dataclass
 class TrainConfig:
-    """Everything that determines a training run (with the scene and the seed)."""
+    """Everything that determines a training run (with the scene and the seed); defaults: the
+    ``fast`` preset."""
 
     preset: Preset = "fast"
-    steps: int = 400
-    rays_per_view: int = 2048  # rays drawn from every input view per step
+    steps: int = 300
+    rays_per_view: int = 4096  # rays drawn from every input view per step
     unseen_rays: int = 2048  # rays drawn at each unseen pose per step
     unseen_poses: int = 1  # unseen poses per step
     unseen_jitter: float = 0.1  # std of the unseen-pose centre jitter, in mean baselines
@@ -130,35 +130,25 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
             unseen_rays=1024,
             lr=5e-3,
             lr_final=1e-4,
-            model=ModelConfig(field_type="mlp", num_planes=80),
-        )
-    elif name == "fast":
-        # Why each setting, with its measurements: bench/PRESET_HISTORY.md.
-        loss = LossConfig(
-            lambda_ac=0.0,
-            lambda_distortion=0.01,
-            lambda_alpha_entropy=0.003,
-            depth_consistency="cauchy",
-            lambda_dc=0.01,
-            lambda_dc_input=0.01,
-            cross_view_colour=0.1,
-        )
-        model = ModelConfig(
-            num_planes=56,
-            plane_density_floor=0.25,
-            fit_depth_range=True,
-            exposure_compensation=True,
-            pyramid=PyramidFieldConfig(
-                base_groups=8,
-                base_interpolation="bicubic",
-                stereo_hidden_colour_everywhere=True,
-                stereo_cost="ad_census",
-                stereo_temperature=0.3,
-                stereo_smoothness=(0.2, 2.0),
-                stereo_supersample=2,
+            model=ModelConfig(
+                field_type="mlp",
+                num_planes=80,
+                plane_density_floor=1.0,
+                fit_depth_range=False,
+                exposure_compensation=False,
+            ),
+            loss=LossConfig(
+                lambda_dc_input=1.0,
+                lambda_ac=1.0,
+                lambda_dc=1.0,
+                lambda_distortion=0.0,
+                depth_consistency="squared",
+                lambda_alpha_entropy=0.0,
+                cross_view_colour=1.0,
             ),
         )
-        cfg = TrainConfig(preset="fast", steps=300, rays_per_view=4096, loss=loss, model=model)
+    elif name == "fast":
+        cfg = TrainConfig()  # why each setting, with its measurements: bench/PRESET_HISTORY.md
     else:
         raise ConfigError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
     return replace(cfg, **overrides)

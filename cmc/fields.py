@@ -98,35 +98,35 @@ class MLPField(MPIField):
 
 @dataclass
 class PyramidFieldConfig:
-    """Explicit multi-resolution plane textures (the ``fast`` preset)."""
+    """Explicit multi-resolution plane textures and the plane sweep that starts their alpha
+    (defaults: the ``fast`` preset's)."""
 
     scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane RGBA residual levels
     base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
-    base_groups: int = 1  # base colours: one per group of adjacent planes (CMCModel: at most one per plane)
+    base_groups: int = 8  # base colours: one per group of adjacent planes (CMCModel: at most one per plane)
     # How rays sample the base colours: "bilinear", or "bicubic" (a sharper reconstruction: a
     # texture seen at another sub-texel phase than it was fitted at keeps its detail; the bake
     # records it and the renderers sample the baked colour the same way, see cmc.baking).
-    base_interpolation: Literal["bilinear", "bicubic"] = "bilinear"
+    base_interpolation: Literal["bilinear", "bicubic"] = "bicubic"
     stereo_init: bool = True  # start alpha from plane-sweep photo-consistency (cmc.planesweep)
-    # Softmin temperature of that prior (on the "ad" cost, mean abs colour difference; ``fast``
-    # uses 0.2 on "ad_census" with semi-global aggregation, whose cost is on another scale). At
-    # 0.05 the prior was nearly flat (training started from fog); at 0.01 it keeps the sweep's
-    # depth (bench/DIAGNOSIS.md).
-    stereo_temperature: float = 0.01
+    # Softmin temperature of that prior, in units of the sweep's cost (lower: more confident).
+    stereo_temperature: float = 0.3
     stereo_occlusion_aware: bool = True  # that prior takes the best-matching other view, not the mean
-    stereo_cost: str = "ad"  # "ad" or "ad_census": the photo-consistency measure (cmc.planesweep)
+    # The photo-consistency measure (cmc.planesweep): "ad" (mean absolute colour difference) or
+    # "ad_census" (that plus a census term, both saturated).
+    stereo_cost: Literal["ad", "ad_census"] = "ad_census"
     stereo_edge_sigma: float = 0.1  # > 0: edge-aware cost aggregation (cmc.planesweep), colour scale
     stereo_extend_border: bool = True  # the margin starts with the image border's geometry (cmc.planesweep)
     # (P1, P2) of semi-global aggregation of the sweep's cost (cmc.planesweep.semi_global), in
     # cost units; P2 = 0: off.
-    stereo_smoothness: tuple[float, float] = (0.0, 0.0)
-    stereo_supersample: int = 1  # the sweep runs on a grid this many times finer than alpha's finest level
+    stereo_smoothness: tuple[float, float] = (0.2, 2.0)
+    stereo_supersample: int = 2  # the sweep runs on a grid this many times finer than alpha's finest level
     # ... as long as that grid holds at most this many texels (cmc.planesweep.affordable_supersample)
     stereo_max_texels: int = 2**19
     # True: the base colours of the groups behind each texel's visible surface (the sweep's most
     # probable plane) start as the background continued from nearby (cmc.model.hidden_layer_colours);
     # False: every group starts as the reference photo.
-    stereo_hidden_colour_everywhere: bool = False
+    stereo_hidden_colour_everywhere: bool = True
 
 
 def plane_group_bounds(num_planes: int, groups: int) -> list[int]:
@@ -222,11 +222,6 @@ class PyramidPlaneField(MPIField):
         )
         logits = sum(F.grid_sample(lvl, grid, align_corners=False).squeeze(2) for lvl in self.levels)
         return base, logits  # type: ignore[return-value]
-
-    def smoothness(self) -> torch.Tensor:
-        """Mean squared finite difference of the finest level's alpha (a total-variation prior)."""
-        a = self.levels[0][:, 3]
-        return ((a[:, 1:, :] - a[:, :-1, :]) ** 2).mean() + ((a[:, :, 1:] - a[:, :, :-1]) ** 2).mean()
 
 
 class TextureField(MPIField):

@@ -144,7 +144,7 @@ class Trainer:
             P = torch.as_tensor(pose, dtype=torch.float32, device=self.device)
             groups.append((self.K[0], P, self._random_pixels(gen, cfg.unseen_rays)[1]))
         # per_mpi[i][t]: MPI i's render of target t (one field query per MPI).
-        unseen_grad = [0.0 if lc.ac_geometry_only else 1.0] * (len(groups) - len(self.scene))
+        unseen_grad = [1.0] * (len(groups) - len(self.scene))
         per_mpi = [
             render_ray_groups(f, fr, groups, self._colour_grads(i) + unseen_grad)
             for i, (f, fr) in enumerate(zip(fields, frames, strict=True))
@@ -181,14 +181,11 @@ class Trainer:
             losses["alpha_entropy"] = alpha_entropy(every_out)
         else:
             losses["alpha_entropy"] = zero
-        smooth = [f.smoothness() for f in fields if hasattr(f, "smoothness")] if lc.lambda_smooth > 0 else []
-        losses["smooth"] = torch.stack(smooth).mean() if smooth else zero
         losses["total"] = (
             losses["mse"]
             + lc.lambda_dc_input * losses["dc_input"]
             + lc.lambda_ac * losses["ac"]
             + lc.lambda_dc * losses["dc"]
-            + lc.lambda_smooth * losses["smooth"]
             + lc.lambda_distortion * losses["distortion"]
             + lc.lambda_alpha_entropy * losses["alpha_entropy"]
         )

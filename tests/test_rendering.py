@@ -70,7 +70,8 @@ def target_cameras() -> dict[str, tuple[np.ndarray, np.ndarray]]:
 def random_pyramid(seed: int, dtype: torch.dtype) -> PyramidPlaneField:
     torch.manual_seed(seed)
     h, w = round(H * MARGIN), round(W * MARGIN)
-    field = PyramidPlaneField(D, h, w, PyramidFieldConfig(), torch.rand(3, h, w))
+    cfg = PyramidFieldConfig(base_groups=1, base_interpolation="bilinear")
+    field = PyramidPlaneField(D, h, w, cfg, torch.rand(3, h, w))
     with torch.no_grad():
         for p in field.parameters():
             p.add_(0.7 * torch.randn_like(p))
@@ -397,7 +398,7 @@ def test_render_image_coverage_zero_outside_planes() -> None:
 
 def test_color_grad_scales_the_gradients_to_colour_only() -> None:
     """render_ray_groups(color_grad=[f]): the composite does not depend on f; the gradients of the
-    field's colours are f times those at f = 1 (False: none, used by LossConfig.ac_geometry_only),
+    field's colours are f times those at f = 1 (False: none),
     the alpha gradients unchanged (LossConfig.cross_view_colour)."""
     field, frame = random_pyramid(7, torch.float32), make_frame()
     K, pose = target_cameras()["moved"]
@@ -427,7 +428,7 @@ def test_pyramid_base_groups_give_plane_k_the_base_k_times_g_over_d(num_planes):
     torch.manual_seed(0)
     D, h, w = num_planes, 12, 16
     rgb, alpha = torch.rand(3, h, w), torch.rand(D, 6, 8)
-    one = PyramidPlaneField(D, h, w, PyramidFieldConfig(), rgb, alpha)
+    one = PyramidPlaneField(D, h, w, PyramidFieldConfig(base_groups=1), rgb, alpha)
     three = PyramidPlaneField(D, h, w, PyramidFieldConfig(base_groups=3), rgb, alpha)
     g, z, dirs = torch.rand(40, D, 2) * 2 - 1, torch.linspace(-1, 1, D), torch.zeros(40, 3)
     with torch.no_grad():
