@@ -77,9 +77,19 @@ EXPERIMENTS: list[tuple[str, list[tuple[str, str, str]]]] = [
     ),
     (
         "Sweep penalties (0.2, 2.0) and 300 steps, chosen on the validation views in bench/EXPLORE.md, 2026-11-27 "
-        "(before: the rows fitted to the sweep above)",
+        "(before: the rows fitted to the sweep above; train seconds of the two sessions' machines are not comparable)",
         [
             ("view_quality_synthetic_sgm2_steps300.json", SGM2_300, "adopted: synthetic -0.01 / -0.01 / +0.10 dB"),
+            ("bounds_fern_test_fit.json", "before (test views)", ""),
+            ("bounds_room_test_fit.json", "before (test views)", ""),
+            ("bounds_trex_test_fit.json", "before (test views)", ""),
+            (
+                "scenes_fern_test_sgm2_steps300.json",
+                SGM2_300,
+                "fern test -0.07 dB, LPIPS-vgg +0.005 (validation: +0.00 dB)",
+            ),
+            ("scenes_room_test_sgm2_steps300.json", SGM2_300, "room test +0.24 dB, LPIPS-vgg -0.008"),
+            ("scenes_trex_test_sgm2_steps300.json", SGM2_300, "trex test +0.07 dB, LPIPS-vgg -0.001"),
         ],
     ),
 ]
