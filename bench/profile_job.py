@@ -2,12 +2,15 @@
 
 Stages, each timed with the device synchronised at its ends:
   * ``model build``: ``Trainer(...)``, split into the plane sweeps that place the planes and fit
-    the depth range (``cmc.model.sweep_statistics``), the sweeps that set each MPI's initial alpha
-    (``cmc.model.sweep_probabilities``) and the rest;
+    the depth range (``cmc.model.sweep_statistics``, the sweeps it runs included), the sweeps
+    that set each MPI's initial alpha (``cmc.model.sweep_probabilities`` called on its own) and
+    the rest;
   * ``train``: every step of ``Trainer.train_step`` done here in three timed parts (forward =
     ``compute_losses``, backward, Adam step), per loss phase (reconstruction only, then all terms);
-  * ``bake`` (``cmc.baking.bake``), ``load`` (``BakedScene.load``), the first render of a test
-    view and the median of ``--renders`` more.
+  * ``preview bake``: the bake a job publishes after ``--preview-at`` of its steps (the service's
+    ``CMC_PREVIEW_AT``), and the final ``bake`` (``cmc.baking.bake``), each scored on the test
+    views (PSNR; the scoring is not timed); ``load`` (``BakedScene.load``), the first render of
+    a test view and the median of ``--renders`` more.
 Pose estimation is not in it (bench/poses_fern.md times it on the phone photos). The split
 training loop syncs the device three times a step, which the service's loop does not.
 
@@ -24,6 +27,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import shutil
 import statistics
 import tempfile
 import time
@@ -38,6 +43,7 @@ from cmc.baking import BakedScene, bake
 from cmc.bench import report_header
 from cmc.config import preset_config, with_settings
 from cmc.datasets import load_llff
+from cmc.metrics import psnr
 from cmc.training import Trainer, lr_at
 
 
@@ -78,6 +84,7 @@ def main() -> None:
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--set", action="append", default=[], help="a config override, as in `cmc train`")
     ap.add_argument("--renders", type=int, default=10)
+    ap.add_argument("--preview-at", type=float, default=0.3, help="share of the steps after which a preview is baked")
     ap.add_argument("--out")
     args = ap.parse_args()
     if args.update_md:
@@ -92,13 +99,20 @@ def main() -> None:
             torch.cuda.synchronize(device)
 
     spent: dict[str, float] = defaultdict(float)
+    running: list[str] = []  # the timed call in progress: a timed call inside it counts as its time
 
     def timed(name: str, fn: Any) -> Any:
         def wrapper(*a: Any, **kw: Any) -> Any:
+            if running:
+                return fn(*a, **kw)
+            running.append(name)
             sync()
             t = time.perf_counter()
-            out = fn(*a, **kw)
-            sync()
+            try:
+                out = fn(*a, **kw)
+                sync()
+            finally:
+                running.pop()
             spent[name] += time.perf_counter() - t
             return out
 
@@ -118,9 +132,28 @@ def main() -> None:
     build = time.perf_counter() - t
     spent["model build: rest"] = build - sum(v for k, v in spent.items() if k.startswith("model build"))
 
+    test = split.test
+    scores: dict[str, float] = {}
+
+    def bake_and_score(name: str, folder: Path) -> None:
+        """Bake into ``folder`` (timed as ``name``), then the baked renders' mean PSNR on the test views."""
+        t = time.perf_counter()
+        bake(trainer.model, folder)
+        sync()
+        spent[name] = time.perf_counter() - t
+        baked = BakedScene.load(folder, device)
+        preds = [
+            baked.render(test.cameras.K[k], test.cameras.world_from_cam[k]).rgb.cpu().numpy() for k in range(len(test))
+        ]
+        scores[name] = round(float(statistics.mean(psnr(p, test.images[k]) for k, p in enumerate(preds))), 3)
+
+    tmp = Path(tempfile.mkdtemp())
     per_step: dict[str, list[float]] = defaultdict(list)
     first_full = int(cfg.loss.recon_only_fraction * cfg.steps)
+    preview_step = math.ceil(args.preview_at * cfg.steps)
     for step in range(cfg.steps):
+        if step == preview_step:
+            bake_and_score("preview bake", tmp / "preview")
         phase = "reconstruction only" if step < first_full else "all terms"
         for g in trainer.optimizer.param_groups:
             g["lr"] = lr_at(cfg, step)
@@ -141,25 +174,21 @@ def main() -> None:
             spent[f"train ({phase}): {part}"] += dt
             per_step[f"{phase}: {part}"].append(dt)
 
-    test = split.test
-    with tempfile.TemporaryDirectory() as tmp:
-        t = time.perf_counter()
-        path = bake(trainer.model, Path(tmp) / "baked")
+    bake_and_score("bake", tmp / "baked")
+    t = time.perf_counter()
+    baked = BakedScene.load(tmp / "baked", device)
+    sync()
+    spent["load baked scene"] = time.perf_counter() - t
+    render = timed("first render", baked.render)
+    render(test.cameras.K[0], test.cameras.world_from_cam[0])
+    times = []
+    for k in range(args.renders):
         sync()
-        spent["bake"] = time.perf_counter() - t
         t = time.perf_counter()
-        baked = BakedScene.load(path, device)
+        baked.render(test.cameras.K[k % len(test)], test.cameras.world_from_cam[k % len(test)])
         sync()
-        spent["load baked scene"] = time.perf_counter() - t
-        render = timed("first render", baked.render)
-        render(test.cameras.K[0], test.cameras.world_from_cam[0])
-        times = []
-        for k in range(args.renders):
-            sync()
-            t = time.perf_counter()
-            baked.render(test.cameras.K[k % len(test)], test.cameras.world_from_cam[k % len(test)])
-            sync()
-            times.append(time.perf_counter() - t)
+        times.append(time.perf_counter() - t)
+    shutil.rmtree(tmp)
 
     total = sum(spent.values())
     rows = [(name, s, s / total) for name, s in spent.items()]
@@ -169,6 +198,8 @@ def main() -> None:
     medians = {k: statistics.median(v) * 1000 for k, v in per_step.items()}
     table += "\nMedian ms per step: " + ", ".join(f"{k} {v:.1f}" for k, v in medians.items())
     table += f"; a later render (median of {args.renders}): {statistics.median(times) * 1000:.1f} ms.\n"
+    table += f"Test-view PSNR of the preview (step {preview_step}): {scores['preview bake']:.2f} dB, "
+    table += f"of the final bake: {scores['bake']:.2f} dB.\n"
     print(table)
     report = {
         **report_header(cfg, device),
@@ -178,6 +209,8 @@ def main() -> None:
         "total_s": round(total, 2),
         "median_step_ms": {k: round(v, 2) for k, v in medians.items()},
         "render_ms_median": round(statistics.median(times) * 1000, 2),
+        "preview_step": preview_step,
+        "test_psnr": scores,
         "table": table,
     }
     Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
