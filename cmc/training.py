@@ -286,6 +286,7 @@ class Trainer:
                 remaining = eta.remaining_s(self.step)
                 assert remaining is not None  # a step was just measured
                 on_progress(Progress(self.step, self.cfg.steps, losses, now - t0, remaining))
+                t_last = time.perf_counter()  # what the callback did (a preview bake) is no step's time
         if checkpoint_path is not None:
             save()
         seconds = time.perf_counter() - t0

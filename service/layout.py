@@ -2,7 +2,7 @@
 
 :class:`SceneLayout` owns every storage key of a scene (``{scene_id}/...``): the uploads under
 our own names, the scene folder the worker writes (working images + cameras.json), the training
-checkpoint, the baked ``cmc-mpi`` folder, glTF exports and camera-path videos. Keys are built
+checkpoint, the baked ``cmc-mpi`` folder and its preview, glTF exports and camera-path videos. Keys are built
 from the scene id (hex) and fixed names only (storage refuses anything else).
 :class:`ClientNames` turns our stored names back into the names the client uploaded.
 """
@@ -56,6 +56,11 @@ class SceneLayout:
     @property
     def manifest(self) -> str:
         return self.baked("mpi.json")
+
+    def preview(self, name: str | None = None) -> str:
+        """The preview's baked folder (a job bakes it part way through training; the same format
+        as :meth:`baked`), or the file ``name`` in it."""
+        return f"{self.scene_id}/preview" + (f"/{name}" if name else "")
 
     def export_glb(self, mpi: int) -> str:
         """The glTF export of MPI ``mpi``."""

@@ -39,7 +39,6 @@ import numpy as np
 from PIL import Image
 
 from service.errors import APIError, ErrorCode
-from service.layout import SceneLayout
 from service.storage import Storage
 
 T = TypeVar("T")
@@ -55,8 +54,10 @@ class Rendered:
 
 
 class BakedCache:
-    """LRU cache of loaded baked scenes, keyed by scene id, bounded by their bytes in memory
-    (:attr:`cmc.baking.BakedScene.nbytes`); the scene just loaded always stays."""
+    """LRU cache of loaded baked scenes, keyed by their storage folder (a scene's final bake or its
+    preview), bounded by their bytes in memory (:attr:`cmc.baking.BakedScene.nbytes`); the scene
+    just loaded always stays, and loading one folder of a scene drops the scene's others (the
+    preview once the final bake is served)."""
 
     def __init__(self, storage: Storage, capacity_bytes: int, threads: int = 1):
         self.storage, self.capacity_bytes, self.threads = storage, capacity_bytes, threads
@@ -64,25 +65,32 @@ class BakedCache:
         self._lock = threading.Lock()
         self._load_locks: dict[str, threading.Lock] = {}
 
-    def get(self, scene_id: str) -> Any:
+    def get(self, folder: str) -> Any:
+        """The baked scene in storage folder ``folder``; FileNotFoundError if none is stored there
+        (a preview removed once its scene became ready)."""
         from cmc.baking import BakedScene
 
         with self._lock:
-            if scene_id in self._scenes:
-                self._scenes.move_to_end(scene_id)
-                return self._scenes[scene_id]
-            load_lock = self._load_locks.setdefault(scene_id, threading.Lock())
+            if folder in self._scenes:
+                self._scenes.move_to_end(folder)
+                return self._scenes[folder]
+            load_lock = self._load_locks.setdefault(folder, threading.Lock())
         with load_lock:  # one load per scene, however many requests arrive together
             with self._lock:
-                if scene_id in self._scenes:
-                    return self._scenes[scene_id]
-            with self.storage.reading(SceneLayout(scene_id).baked()) as folder:
-                baked = BakedScene.load(folder)
+                if folder in self._scenes:
+                    return self._scenes[folder]
+            with self.storage.reading(folder) as local:
+                if not local.exists():
+                    raise FileNotFoundError(folder)
+                baked = BakedScene.load(local)
+            scene = folder.split("/", 1)[0]
             with self._lock:
-                self._scenes[scene_id] = baked
+                for other in [k for k in self._scenes if k.split("/", 1)[0] == scene]:
+                    del self._scenes[other]
+                self._scenes[folder] = baked
                 while len(self._scenes) > 1 and self.nbytes > self.capacity_bytes:
                     self._scenes.popitem(last=False)
-                self._load_locks.pop(scene_id, None)
+                self._load_locks.pop(folder, None)
         return baked
 
     @property
@@ -91,23 +99,26 @@ class BakedCache:
         return sum(s.nbytes for s in self._scenes.values())
 
     def evict(self, scene_id: str) -> None:
+        """Drop every loaded folder of scene ``scene_id``."""
         with self._lock:
-            self._scenes.pop(scene_id, None)
+            for key in [k for k in self._scenes if k.split("/", 1)[0] == scene_id]:
+                del self._scenes[key]
 
     def render(
         self,
-        scene_id: str,
+        folder: str,
         K: np.ndarray,
         world_from_cam: np.ndarray,
         width: int,
         height: int,
         coverage: bool = False,
     ) -> Rendered:
-        """Colour and depth of one camera (OpenCV convention, pixels, see cmc.cameras), and with
-        ``coverage`` which pixels show a point an input photo saw (:meth:`BakedScene.coverage`)."""
+        """Colour and depth of one camera (OpenCV convention, pixels, see cmc.cameras) from the
+        baked scene in storage folder ``folder``, and with ``coverage`` which pixels show a point
+        an input photo saw (:meth:`BakedScene.coverage`)."""
         import torch
 
-        baked = self.get(scene_id)
+        baked = self.get(folder)
         with torch.inference_mode():
             out = baked.render(K, world_from_cam, width, height, threads=self.threads)
             rgb = out.rgb.float().cpu().numpy()

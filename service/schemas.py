@@ -61,6 +61,11 @@ class SceneOut(BaseModel):
         "stages after it (null while queued; 0 when ready). Until training has run its first steps, training "
         "is estimated at a reference CPU's speed"
     )
+    preview_ready: bool = Field(
+        description="while the scene trains: render, depth, mpi and the viewer already answer from a preview "
+        "its job baked part way through training (their Scene-Stage header says 'preview') until the final "
+        "bake replaces it; false once the scene is ready (then they answer from the final bake)"
+    )
     detail: str | None = Field(description="what the job is doing, for people")
     error: JobError | None = Field(description="set when status is 'failed'")
     options: SceneOptions

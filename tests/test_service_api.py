@@ -925,6 +925,64 @@ def test_unfinished_job_resumes_after_a_restart(tmp_path: Path) -> None:
     assert rec.attempts == 0  # a clean stop is not a lost worker
 
 
+def test_preview_is_served_while_training_then_the_final_bake(tmp_path: Path) -> None:
+    """A job bakes a preview after ``preview_at`` of its steps; render, depth and mpi answer from it
+    (``Scene-Stage: preview``) while the scene trains, and at once after a restart mid-training (a
+    crash between preview and final: the preview survives, the job resumes); once ready they
+    answer from the final bake and the preview is gone from storage."""
+    parts, _, novel = synthetic_upload(steps=100)
+    settings = settings_for(tmp_path, checkpoint_every=5, preview_at=0.2)
+    gt_rgb, _ = render_layers(DEFAULT_LAYERS, novel)
+
+    def render(client: TestClient, sid: str) -> tuple[str, float]:
+        r = client.post(f"/v1/scenes/{sid}/render", json=render_body(novel))
+        assert r.status_code == 200, r.text
+        rgb = np.asarray(Image.open(io.BytesIO(r.content)).convert("RGB"), dtype=np.float32) / 255
+        return r.headers["scene-stage"], psnr(rgb, gt_rgb[0])
+
+    refused_before_preview = False
+    with TestClient(create_app(settings)) as client:
+        sid = client.post("/v1/scenes", files=parts).json()["id"]
+        t0 = time.time()
+        while not (body := client.get(f"/v1/scenes/{sid}").json())["preview_ready"]:
+            assert body["status"] not in ("ready", "failed") and time.time() - t0 < 180, body
+            if body["status"] == "training" and not refused_before_preview:
+                r = client.post(f"/v1/scenes/{sid}/render", json=render_body(novel))
+                if r.status_code == 409:  # else the preview came in between: then it must be served
+                    assert r.json()["error"]["code"] == "scene_not_ready" and "no preview yet" in r.text
+                    refused_before_preview = True
+                else:
+                    assert r.status_code == 200 and r.headers["scene-stage"] == "preview"
+            time.sleep(0.05)
+        assert body["status"] == "training" and body["progress"] < 1
+        stage, preview_psnr = render(client, sid)
+        assert stage == "preview" and preview_psnr > 22.0  # the scene, not noise (untrained: 23.5 dB)
+        depth = client.post(f"/v1/scenes/{sid}/depth", json=render_body(novel))
+        assert depth.status_code == 200 and depth.headers["scene-stage"] == "preview"
+        mpi = client.get(f"/v1/scenes/{sid}/mpi")
+        assert mpi.status_code == 200 and mpi.headers["scene-stage"] == "preview"
+        atlas = json.loads(mpi.content)["mpis"][0]["atlas"]
+        assert client.get(f"/v1/scenes/{sid}/mpi/{atlas}").headers["scene-stage"] == "preview"
+        assert client.get(f"/v1/scenes/{sid}/camera-path?frames=3").status_code == 200
+        assert client.get(f"/v1/scenes/{sid}/export.glb").status_code == 409  # final products wait
+    assert refused_before_preview
+    # the app stopped mid-training (checkpointed, as after a crash): the preview is served at once
+    with TestClient(create_app(settings)) as client:
+        body = client.get(f"/v1/scenes/{sid}").json()
+        assert body["status"] in ("training", "baking") and body["preview_ready"], body
+        assert render(client, sid)[0] == "preview"
+        body = wait_for(client, sid, ("ready", "failed"))
+        assert body["status"] == "ready" and not body["preview_ready"], body
+        stage, final_psnr = render(client, sid)
+        assert stage == "final" and final_psnr > 25.0
+        rec = client.app.state.services.store.get(sid)
+    assert rec.stats["preview"]["step"] == 20  # baked once, not again on resuming
+    assert rec.stats["train"]["resumed_from_step"] >= 20
+    assert not (tmp_path / "storage" / sid / "preview").exists() or not any(
+        (tmp_path / "storage" / sid / "preview").iterdir()
+    )
+
+
 class ServeProcess:
     """``cmc serve`` (embedded runner) as a child process on a free port."""
 

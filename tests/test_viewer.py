@@ -49,6 +49,11 @@ def site(tmp_path_factory):
     trainer = Trainer(scene, cfg)
     trainer.fit()
     bake(trainer.model, root / "baked")
+    shutil.copytree(root / "baked", root / "preview")
+    for atlas in (root / "preview").glob("*.png"):  # the preview: the same planes, all white
+        rgba = np.asarray(Image.open(atlas)).copy()
+        rgba[..., :3] = 255
+        Image.fromarray(rgba, "RGBA").save(atlas)
     shutil.copy(VIEWER, root / "viewer.html")
     return root
 
@@ -150,8 +155,10 @@ def test_drag_moves_the_camera(site, static_url, page):
 class _FakeAPI(BaseHTTPRequestHandler):
     """The two routes the viewer uses: GET /v1/scenes/{id} and /v1/scenes/{id}/mpi/{file}.
 
-    Scene "s1" trains for its first two status requests, then is ready; "bad" has failed.
-    Requests without the bearer key get 401. The class attributes are set per test.
+    Scene "s1" trains for its first two status requests, then is ready; "bad" has failed; "p1"
+    trains with a preview (``site/preview``, the baked scene's planes all white) for its first
+    three status requests, then is ready (``site/baked``). Requests without the bearer key get
+    401. The class attributes are set per test.
     """
 
     site: Path
@@ -186,6 +193,18 @@ class _FakeAPI(BaseHTTPRequestHandler):
                 "error": None,
             }
             return self._send(200, json.dumps(status).encode(), "application/json")
+        if self.path == "/v1/scenes/p1":
+            type(self).polls += 1
+            ready = self.polls > 3
+            status = {
+                "id": "p1",
+                "status": "ready" if ready else "training",
+                "preview_ready": not ready,
+                "progress": 1.0 if ready else 0.5,
+                "eta_seconds": 0.0 if ready else 30.0,
+                "error": None,
+            }
+            return self._send(200, json.dumps(status).encode(), "application/json")
         if self.path == "/v1/scenes/bad":
             status = {
                 "id": "bad",
@@ -195,9 +214,10 @@ class _FakeAPI(BaseHTTPRequestHandler):
                 "error": {"code": "poses_failed", "message": "only 1 of 3 photos registered"},
             }
             return self._send(200, json.dumps(status).encode(), "application/json")
-        prefix = "/v1/scenes/s1/mpi/"
-        if self.path.startswith(prefix) and "/" not in self.path[len(prefix) :]:
-            f = self.site / "baked" / self.path[len(prefix) :]
+        scene, _, name = self.path.removeprefix("/v1/scenes/").partition("/mpi/")
+        if scene in ("s1", "p1") and name and "/" not in name:
+            folder = "preview" if scene == "p1" and self.polls <= 3 else "baked"
+            f = self.site / folder / name
             if f.is_file():
                 return self._send(200, f.read_bytes(), "application/json" if f.suffix == ".json" else "image/png")
         return self._send(404, b'{"error": {"code": "not_found", "message": "no such thing"}}', "application/json")
@@ -221,6 +241,25 @@ def test_api_mode_shows_training_progress_then_the_scene(api_url, page):
     assert page.is_hidden("#status")
     assert _frame(page, 1).std() > 0.05  # a picture, not a blank canvas
     assert api.polls == 3 and set(api.auth_seen) == {f"Bearer {api.key}"}  # every request carried the key
+
+
+def test_api_mode_shows_a_preview_then_swaps_in_the_final_scene(api_url, page):
+    """A scene whose job published a preview is shown at once, marked as a preview; when the scene
+    is ready the viewer loads the final bake in its place, from the same camera."""
+    url, api = api_url
+    page.goto(f"{url}/viewer.html?scene=p1#key={api.key}")
+    _wait_ready(page)
+    assert page.evaluate("() => window.cmcViewer.stage") == "preview"
+    assert "Preview" in page.text_content("#stage-note") and page.is_hidden("#status")
+    pose = page.evaluate("() => window.cmcViewer.getCamera().world_from_cam")
+    frames = page.evaluate("() => window.cmcViewer.frames")
+    preview = _frame(page, frames)
+    page.wait_for_function("() => window.cmcViewer.stage === 'final'", timeout=30_000)
+    final = _frame(page, page.evaluate("() => window.cmcViewer.frames"))
+    assert page.is_hidden("#stage-note")
+    assert page.evaluate("() => window.cmcViewer.getCamera().world_from_cam") == pose
+    # the preview's planes are white: the final picture is the scene's own colours
+    assert preview.mean() > 0.9 and preview.mean() - final.mean() > 0.2
 
 
 def test_api_mode_reports_a_failed_scene(api_url, page):

@@ -7,7 +7,9 @@ A job runs in two phases, each a separate task so GPU workers only train and bak
   :func:`cmc.poses.poses_from_client` when the upload came with a cameras file; writes the
   scene folder ``{id}/scene/`` and sends the ``train`` phase.
 * ``train`` (GPU queue): trains with checkpoints in ``{id}/checkpoint.pt`` (resumed when a
-  previous worker died), bakes ``{id}/baked/``, marks the scene ready.
+  previous worker died), bakes a preview ``{id}/preview/`` part way (``Settings.preview_at``;
+  the API serves it until the scene is ready, also while a resumed job trains on), bakes
+  ``{id}/baked/``, marks the scene ready and removes the preview.
 
 Phases work on local copies (:meth:`Storage.reading`, :meth:`Storage.writing`: the stored files
 themselves on local storage, downloads and uploads with S3) and publish each result whole.
@@ -30,6 +32,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import socket
 import threading
@@ -38,7 +41,7 @@ import traceback
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from service.errors import ErrorCode
 from service.jobs import JobQueue
@@ -46,6 +49,12 @@ from service.layout import ClientNames, SceneLayout
 from service.settings import Settings
 from service.storage import Storage
 from service.store import Phase, SceneRecord, SceneStore
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from cmc.config import TrainConfig
+    from cmc.training import Trainer
 
 log = logging.getLogger("cmc.worker")
 
@@ -303,66 +312,114 @@ def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
         _train_and_bake_in(ctx, rec, hb, scene_dir, work)
 
 
-def _train_and_bake_in(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path, work: Path) -> None:
-    """Train on the scene folder ``scene_dir`` with checkpoints written in ``work`` and each one
-    published to storage, then bake into storage."""
+def _job_config(options: dict[str, Any], settings: Settings) -> TrainConfig:
+    """The training configuration of a job: its preset with the job's steps and seed, and the
+    deployment's checkpoint interval."""
+    from cmc.config import preset_config
+
+    overrides: dict[str, Any] = {"seed": int(options["seed"])}
+    if options.get("steps"):
+        overrides["steps"] = int(options["steps"])
+    if settings.checkpoint_every:
+        overrides["checkpoint_every"] = settings.checkpoint_every
+    return preset_config(options["preset"], **overrides)
+
+
+def _training_device(settings: Settings) -> str:
+    """``settings.device``, with ``auto`` resolved to CUDA where there is a GPU."""
     import torch
 
+    if settings.device != "auto":
+        return settings.device
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def _resume(ctx: JobContext, rec: SceneRecord, trainer: Trainer, make: Callable[[], Trainer]) -> Trainer:
+    """``trainer`` at the job's stored checkpoint when there is a usable one, else a fresh one
+    from ``make`` (a checkpoint torn by an old crash or of another configuration is deleted)."""
+    key = SceneLayout(rec.id).checkpoint
+    with ctx.storage.reading(key) as saved:
+        if not saved.exists():
+            return trainer
+        try:
+            trainer.load_checkpoint(saved)
+            return trainer
+        except Exception:
+            log.warning("job %s: unusable checkpoint, training from step 0", rec.id, exc_info=True)
+    ctx.storage.delete(key)
+    return make()
+
+
+def _train_and_bake_in(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path, work: Path) -> None:
+    """Train on the scene folder ``scene_dir`` with checkpoints written in ``work`` and each one
+    published to storage, bake a preview part way, then bake into storage."""
     from cmc.baking import MANIFEST, bake
-    from cmc.config import preset_config
     from cmc.datasets import load_scene_folder
     from cmc.eta import REFERENCE_STEP_S, bake_steps
     from cmc.training import Progress, Trainer, TrainingCancelled
 
-    s, opts, layout = ctx.settings, rec.options, SceneLayout(rec.id)
+    s, layout = ctx.settings, SceneLayout(rec.id)
     scene = load_scene_folder(scene_dir)
-    overrides: dict[str, Any] = {"seed": int(opts["seed"])}
-    if opts.get("steps"):
-        overrides["steps"] = int(opts["steps"])
-    if s.checkpoint_every:
-        overrides["checkpoint_every"] = s.checkpoint_every
-    cfg = preset_config(opts["preset"], **overrides)
+    cfg = _job_config(rec.options, s)
     cams = scene.cameras
     bake_cost = bake_steps(cams.width, cams.height, cfg.model.margin, len(scene), cfg.rays_per_view)
+    preview_step = math.ceil(s.preview_at * cfg.steps) if s.preview_at < 1 and "preview" not in rec.stats else None
     step_s = REFERENCE_STEP_S  # until this worker has measured its own steps
     hb.set(  # while the model is built: plane sweeps, seconds to minutes
         status="training",
         progress=0.0,
-        eta_seconds=round((cfg.steps + bake_cost) * step_s, 1),
+        eta_seconds=round((cfg.steps + (1 + (preview_step is not None)) * bake_cost) * step_s, 1),
         detail=f"building the model ({cfg.preset} preset: plane sweep)",
     )
     hb.flush()
-    device = s.device
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    trainer = Trainer(scene, cfg, device)
+    device = _training_device(s)
+    trainer = _resume(ctx, rec, Trainer(scene, cfg, device), lambda: Trainer(scene, cfg, device))
     ckpt_key, ckpt = layout.checkpoint, work / "checkpoint.pt"
-    resumed_from = 0
-    with ctx.storage.reading(ckpt_key) as saved:
-        if saved.exists():
-            try:
-                trainer.load_checkpoint(saved)
-                resumed_from = trainer.step
-            except Exception:  # torn by an old crash or another configuration: start over
-                log.warning("job %s: unusable checkpoint, training from step 0", rec.id, exc_info=True)
-                ctx.storage.delete(ckpt_key)
-                trainer = Trainer(scene, cfg, device)
+    resumed_from = trainer.step
     stats = {**rec.stats, "train": {"steps": cfg.steps, "device": str(device), "resumed_from_step": resumed_from}}
+    preview_s = 0.0  # seconds this attempt spent baking the preview (no training step's time)
+
+    def preview_pending() -> bool:
+        return preview_step is not None and "preview" not in stats
+
+    def bake_preview() -> None:
+        """Bake the model as it is now and publish it as the scene's preview (whole, or not at all)."""
+        nonlocal preview_s
+        hb.set(detail=f"baking a preview at step {trainer.step} of {cfg.steps}")
+        hb.flush()
+        t = time.perf_counter()
+        with ctx.storage.writing(layout.preview(), manifest=MANIFEST) as folder:
+            bake(trainer.model, folder)
+        preview_s = time.perf_counter() - t
+        stats["preview"] = {
+            "step": trainer.step,
+            "bake_seconds": round(preview_s, 2),
+            "seconds_after_upload": round(time.time() - rec.created_at, 1),
+        }
+        hb.set(stats=stats, detail=f"training ({cfg.preset} preset, {cfg.steps} steps, {device}); preview ready")
+        hb.flush()
+
     hb.set(
         status="training",
         progress=trainer.step / cfg.steps,
-        eta_seconds=round((cfg.steps - trainer.step + bake_cost) * step_s, 1),
+        eta_seconds=round((cfg.steps - trainer.step + (1 + preview_pending()) * bake_cost) * step_s, 1),
         detail=f"training ({cfg.preset} preset, {cfg.steps} steps, {device})"
         + (f", resumed from the checkpoint of step {resumed_from}" if resumed_from else ""),
         stats=stats,
     )
     hb.flush()
+    if preview_pending() and trainer.step >= preview_step:  # type: ignore[operator]
+        bake_preview()  # at step 0 (preview_at = 0), or resumed past the step without one
+        preview_s = 0.0  # before training: not in its elapsed time
     t0 = time.perf_counter()
 
     def on_progress(p: Progress) -> None:
         nonlocal step_s
-        step_s = p.elapsed_s / (p.step - resumed_from)
-        hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s + bake_cost * step_s, 1))
+        step_s = (p.elapsed_s - preview_s) / (p.step - resumed_from)
+        bakes = 1 + preview_pending()
+        hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s + bakes * bake_cost * step_s, 1))
+        if preview_pending() and p.step >= preview_step:  # type: ignore[operator]
+            bake_preview()
 
     def publish_checkpoint(path: Path) -> None:
         try:
@@ -393,6 +450,8 @@ def _train_and_bake_in(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_
     if not ctx.store.advance(rec.id, ctx.worker_id, "done", "ready", **ready):
         raise JobStopped("lease_lost")
     ctx.storage.delete(ckpt_key)  # the baked MPI is the product; the checkpoint was for resuming
+    for key in ctx.storage.list(layout.preview()):  # the API serves the final bake now
+        ctx.storage.delete(key)
 
 
 class VideoStopped(Exception):

@@ -14,6 +14,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from service.auth import KeyRing
 from service.errors import APIError, ErrorCode, not_found
 from service.jobs import JobQueue
+from service.layout import SceneLayout
 from service.metrics import Metrics
 from service.quotas import STATE_KEY, Quotas, headers_of
 from service.renders import BakedCache, RenderQueue
@@ -74,6 +75,19 @@ ERRORS_READY: dict[int | str, dict[str, Any]] = {
     **ERRORS,
     409: {"model": ErrorBody, "description": "the scene is not ready yet (code scene_not_ready)"},
 }
+ERRORS_VIEWABLE: dict[int | str, dict[str, Any]] = {
+    **ERRORS,
+    409: {
+        "model": ErrorBody,
+        "description": "the scene is neither ready nor has a preview yet (code scene_not_ready)",
+    },
+}
+STAGE_HEADER = {
+    "Scene-Stage": {
+        "schema": {"type": "string", "enum": ["preview", "final"]},
+        "description": "preview: from the bake a job publishes part way through training; final: the ready scene",
+    }
+}
 _INT = {"schema": {"type": "integer"}}
 FROM_BUCKET: dict[int | str, dict[str, Any]] = {  # service.storage.file_response
     307: {
@@ -105,7 +119,7 @@ def too_many(limits: str) -> dict[int | str, dict[str, Any]]:
 
 
 ERRORS_RENDER: dict[int | str, dict[str, Any]] = {
-    **ERRORS_READY,
+    **ERRORS_VIEWABLE,
     **too_many("renders per second (code render_rate_limited)"),
     503: {"model": ErrorBody, "description": "all render slots taken (code renderer_busy): retry after Retry-After"},
 }
@@ -120,6 +134,29 @@ def owned_scene(svc: Services, scene_id: str, owner: str) -> SceneRecord:
     if rec is None:
         raise not_found()
     return rec
+
+
+def serves_preview(rec: SceneRecord) -> bool:
+    """Whether the scene's views come from the preview its job published (it trains on)."""
+    return rec.status in ("training", "baking") and "preview" in rec.stats
+
+
+def viewable_scene(svc: Services, scene_id: str, owner: str) -> tuple[SceneRecord, str]:
+    """The scene and the storage folder its views come from: the final bake of a ready scene, or
+    the preview its job published while it trains (409 scene_not_ready when there is neither)."""
+    rec = owned_scene(svc, scene_id, owner)
+    layout = SceneLayout(scene_id)
+    if rec.status == "ready":
+        return rec, layout.baked()
+    if serves_preview(rec):
+        return rec, layout.preview()
+    detail = f"the scene is {rec.status}" + ("; no preview yet" if rec.status in ("training", "baking") else "")
+    raise APIError(409, ErrorCode.scene_not_ready, detail, {"status": rec.status})
+
+
+def stage_of(folder: str) -> str:
+    """``preview`` or ``final``: which bake the folder from :func:`viewable_scene` holds."""
+    return "preview" if folder.endswith("/preview") else "final"
 
 
 def ready_scene(svc: Services, scene_id: str, owner: str) -> SceneRecord:

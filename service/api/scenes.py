@@ -24,6 +24,7 @@ from service.api.deps import (
     Svc,
     iso_time,
     owned_scene,
+    serves_preview,
     too_many,
 )
 from service.errors import APIError, ErrorCode
@@ -56,6 +57,7 @@ def scene_out(rec: SceneRecord) -> SceneOut:
         status=rec.status,
         progress=round(rec.progress, 4),
         eta_seconds=rec.eta_seconds,
+        preview_ready=serves_preview(rec),
         detail=rec.detail,
         error=error,
         options=SceneOptions(**rec.options),

@@ -1,5 +1,6 @@
-"""View routes of a ready scene: render and depth from any camera, the baked MPI, glTF export,
-camera paths and their videos, the viewer page."""
+"""View routes of a scene: render and depth from any camera, the baked MPI and camera paths (of a
+ready scene, or of the preview its job publishes while it trains: ``Scene-Stage`` says which);
+glTF export and videos (ready scenes only); the viewer page."""
 
 from __future__ import annotations
 
@@ -17,13 +18,18 @@ from fastapi.responses import HTMLResponse, JSONResponse
 from service.api.deps import (
     ERRORS_READY,
     ERRORS_RENDER,
+    ERRORS_VIEWABLE,
     FROM_BUCKET,
     RATE_LIMIT_HEADERS,
+    STAGE_HEADER,
     Owner,
     RenderQuota,
     SceneId,
+    Services,
     Svc,
     ready_scene,
+    stage_of,
+    viewable_scene,
 )
 from service.errors import APIError, ErrorCode, not_found
 from service.layout import SceneLayout
@@ -44,7 +50,7 @@ from service.schemas import (
     VideoBuilding,
 )
 from service.settings import Settings
-from service.storage import file_response
+from service.storage import StorageError, file_response
 
 log = logging.getLogger("cmc.api")
 router = APIRouter()
@@ -74,7 +80,7 @@ def _camera(body: RenderCamera, settings: Settings) -> tuple[np.ndarray, np.ndar
 @router.get(
     "/v1/scenes/{scene_id}/camera-path",
     response_model=CameraPath,
-    responses=ERRORS_READY,
+    responses=ERRORS_VIEWABLE,
     summary="Novel cameras along a path through the capture (the videos' paths), each a render body",
 )
 def get_camera_path(
@@ -88,8 +94,7 @@ def get_camera_path(
     from cmc.camera_paths import baked_path_cameras
     from cmc.cameras import CameraFile, camera_file_to_dict
 
-    ready_scene(svc, scene_id, owner)
-    manifest = json.loads(svc.storage.read_bytes(SceneLayout(scene_id).manifest))
+    manifest = json.loads(_manifest(svc, scene_id, owner)[1])  # a preview's cameras are the final's
     cams = baked_path_cameras(manifest, path, frames)
     data = camera_file_to_dict(CameraFile(cams, [path] * len(cams)), convention)
     size = {"w": data["w"], "h": data["h"], "convention": convention}
@@ -105,7 +110,7 @@ def get_camera_path(
         200: {
             "content": {"image/png": {}, "image/jpeg": {}},
             "description": "the rendered view",
-            "headers": RATE_LIMIT_HEADERS,
+            "headers": {**RATE_LIMIT_HEADERS, **STAGE_HEADER},
         },
     },
     response_class=Response,
@@ -124,15 +129,35 @@ async def render_view(
     if media is None:
         formats = "image/png (with coverage=true)" if coverage else "image/png or image/jpeg"
         raise APIError(406, ErrorCode.not_acceptable, f"this endpoint returns {formats}")
-    await run_in_threadpool(ready_scene, svc, scene_id, owner)
+    _, folder = await run_in_threadpool(viewable_scene, svc, scene_id, owner)
     K, pose, w, h = _camera(camera, svc.settings)
 
-    def draw() -> bytes:
-        out = svc.renders.render(scene_id, K, pose, w, h, coverage)
-        return encode_image(out.rgb, media, out.coverage)
+    def draw() -> tuple[str, bytes]:
+        used, out = _render(svc, scene_id, owner, folder, K, pose, w, h, coverage)
+        return used, encode_image(out.rgb, media, out.coverage)
 
-    body = await svc.render_queue.run(draw)
-    return Response(body, media_type=media, headers={"Cache-Control": "no-store"})
+    used, body = await svc.render_queue.run(draw)
+    return Response(body, media_type=media, headers={"Cache-Control": "no-store", "Scene-Stage": stage_of(used)})
+
+
+def _render(
+    svc: Services,
+    scene_id: str,
+    owner: str,
+    folder: str,
+    K: np.ndarray,
+    pose: np.ndarray,
+    w: int,
+    h: int,
+    coverage: bool,
+) -> tuple[str, Rendered]:
+    """Render from storage folder ``folder``, or from the scene's current one if that folder
+    went (a preview removed as its scene became ready); returns the folder used and the render."""
+    try:
+        return folder, svc.renders.render(folder, K, pose, w, h, coverage)
+    except FileNotFoundError:
+        _, folder = viewable_scene(svc, scene_id, owner)
+        return folder, svc.renders.render(folder, K, pose, w, h, coverage)
 
 
 @router.post(
@@ -144,7 +169,7 @@ async def render_view(
             "content": {"image/png": {}, "application/x-npy": {}},
             "description": "16-bit PNG (depth = value x Depth-Scale header, scene units, 0 = no surface), "
             "float32 .npy (scene units), or with preview=true an 8-bit colour map",
-            "headers": RATE_LIMIT_HEADERS,
+            "headers": {**RATE_LIMIT_HEADERS, **STAGE_HEADER},
         },
     },
     response_class=Response,
@@ -163,19 +188,19 @@ async def render_depth(
     media = "image/png" if preview else negotiate(accept, ["image/png", "application/x-npy"])
     if media is None:
         raise APIError(406, ErrorCode.not_acceptable, "this endpoint returns image/png or application/x-npy")
-    await run_in_threadpool(ready_scene, svc, scene_id, owner)
+    _, folder = await run_in_threadpool(viewable_scene, svc, scene_id, owner)
     K, pose, w, h = _camera(camera, svc.settings)
 
-    def draw() -> tuple[Rendered, bytes]:
-        out = svc.renders.render(scene_id, K, pose, w, h, coverage)
+    def draw() -> tuple[str, Rendered, bytes]:
+        used, out = _render(svc, scene_id, owner, folder, K, pose, w, h, coverage)
         if preview:
-            return out, encode_depth_preview(out.depth, out.near, out.far, out.coverage)
+            return used, out, encode_depth_preview(out.depth, out.near, out.far, out.coverage)
         if media == "image/png":
-            return out, encode_depth_png16(out.depth, out.far, out.coverage)
-        return out, encode_depth_npy(out.depth, out.coverage)
+            return used, out, encode_depth_png16(out.depth, out.far, out.coverage)
+        return used, out, encode_depth_npy(out.depth, out.coverage)
 
-    out, body = await svc.render_queue.run(draw)
-    headers = {"Cache-Control": "no-store", "Depth-Units": "scene"}
+    used, out, body = await svc.render_queue.run(draw)
+    headers = {"Cache-Control": "no-store", "Depth-Units": "scene", "Scene-Stage": stage_of(used)}
     headers.update({"Depth-Near": f"{out.near:.9g}", "Depth-Far": f"{out.far:.9g}"})
     if media == "image/png" and not preview:
         headers["Depth-Scale"] = f"{depth_scale(out.far):.9g}"
@@ -184,33 +209,50 @@ async def render_depth(
 
 @router.get(
     "/v1/scenes/{scene_id}/mpi",
-    responses={**ERRORS_READY, 200: {"description": "mpi.json of the baked cmc-mpi folder"}},
-    summary="The baked MPI's manifest (atlases at /v1/scenes/{id}/mpi/{atlas})",
+    responses={
+        **ERRORS_VIEWABLE,
+        200: {"description": "mpi.json of the baked cmc-mpi folder", "headers": STAGE_HEADER},
+    },
+    summary="The baked MPI's manifest (atlases at /v1/scenes/{id}/mpi/{atlas}); a preview's while the scene trains",
 )
 def get_mpi(scene_id: SceneId, svc: Svc, owner: Owner) -> Response:
-    ready_scene(svc, scene_id, owner)
-    return Response(svc.storage.read_bytes(SceneLayout(scene_id).manifest), media_type="application/json")
+    folder, manifest = _manifest(svc, scene_id, owner)
+    return Response(manifest, media_type="application/json", headers={"Scene-Stage": stage_of(folder)})
+
+
+def _manifest(svc: Services, scene_id: str, owner: str) -> tuple[str, bytes]:
+    """The folder a scene's views come from (:func:`viewable_scene`) and its mpi.json."""
+    for _ in range(2):  # a preview removed in between: the scene is ready now
+        _, folder = viewable_scene(svc, scene_id, owner)
+        try:
+            return folder, svc.storage.read_bytes(f"{folder}/mpi.json")
+        except StorageError:
+            continue
+    raise APIError(409, ErrorCode.scene_not_ready, "the scene's bake is being replaced; retry")
 
 
 @router.get(
     "/v1/scenes/{scene_id}/mpi/{name}",
     responses={
-        **ERRORS_READY,
+        **ERRORS_VIEWABLE,
         **FROM_BUCKET,
-        200: {"content": {"image/png": {}, "application/json": {}}, "description": "a file"},
+        200: {
+            "content": {"image/png": {}, "application/json": {}},
+            "description": "a file",
+            "headers": STAGE_HEADER,
+        },
     },
-    summary="A file of the baked MPI: mpi.json or an atlas it names",
+    summary="A file of the baked MPI: mpi.json or an atlas it names; a preview's while the scene trains",
 )
 def get_mpi_file(scene_id: SceneId, name: str, svc: Svc, owner: Owner) -> Response:
-    ready_scene(svc, scene_id, owner)
-    layout = SceneLayout(scene_id)
-    manifest = svc.storage.read_bytes(layout.manifest)
+    folder, manifest = _manifest(svc, scene_id, owner)
+    stage = {"Scene-Stage": stage_of(folder)}
     if name == "mpi.json":
-        return Response(manifest, media_type="application/json")
+        return Response(manifest, media_type="application/json", headers=stage)
     atlases = {m["atlas"] for m in json.loads(manifest)["mpis"]}
     if name not in atlases:  # only names the manifest lists; never a client-built path
         raise not_found("file")
-    return file_response(svc.storage, layout.baked(name), "image/png")
+    return file_response(svc.storage, f"{folder}/{name}", "image/png", headers=stage)
 
 
 @router.get(
