@@ -313,7 +313,7 @@ def test_render_cache_loads_the_baked_scene_from_the_bucket(s3_ready) -> None:
     cache.evict(sid)
     r = client.post(f"/v1/scenes/{sid}/render", json=render_body(client.novel))
     assert r.status_code == 200 and r.headers["content-type"] == "image/png"
-    assert sid in cache._scenes and cache.nbytes > 0
+    assert f"{sid}/baked" in cache._scenes and cache.nbytes > 0
     assert np.asarray(Image.open(io.BytesIO(r.content))).std() > 0.01
 
 

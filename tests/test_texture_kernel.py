@@ -238,8 +238,9 @@ def test_baked_scene_keeps_only_the_8_bit_textures(tmp_path):
 
 
 def test_render_cache_is_bounded_by_bytes(tmp_path):
-    """The service's cache of loaded scenes drops the least recently used beyond its byte budget,
-    but never the scene it just loaded."""
+    """The service's cache of loaded scenes (keyed by storage folder) drops the least recently used
+    beyond its byte budget, but never the scene it just loaded; loading a scene's final bake drops
+    its preview; a folder with nothing stored is FileNotFoundError."""
     from cmc.baking import bake
     from cmc.config import preset_config
     from cmc.datasets import synthetic_scene
@@ -249,14 +250,21 @@ def test_render_cache_is_bounded_by_bytes(tmp_path):
 
     scene = synthetic_scene(num_views=2, width=32, height=24)
     model = Trainer(scene, preset_config("fast", steps=1, rays_per_view=64, unseen_rays=64)).model
-    a, b, c = (f"{n:032x}" for n in (10, 11, 12))  # scene ids as the service makes them
-    for name in (a, b, c):
-        bake(model, tmp_path / name / "baked")
-    size = BakedScene.load(tmp_path / a / "baked").nbytes
+    a, b, c = (f"{n:032x}/baked" for n in (10, 11, 12))  # scene ids as the service makes them
+    for folder in (a, b, c, f"{12:032x}/preview"):
+        bake(model, tmp_path / folder)
+    size = BakedScene.load(tmp_path / a).nbytes
     cache = BakedCache(LocalStorage(tmp_path), capacity_bytes=2 * size)
-    for name in (a, b, a, c):  # b is now the least recently used
-        cache.get(name)
+    for folder in (a, b, a, c):  # b is now the least recently used
+        cache.get(folder)
     assert list(cache._scenes) == [a, c] and cache.nbytes == 2 * size
+    cache.evict(f"{12:032x}")
+    cache.get(f"{12:032x}/preview")
+    assert list(cache._scenes) == [a, f"{12:032x}/preview"]
+    cache.get(c)  # the final bake replaces the preview of the same scene
+    assert list(cache._scenes) == [a, c]
+    with pytest.raises(FileNotFoundError):
+        cache.get(f"{13:032x}/preview")
     small = BakedCache(LocalStorage(tmp_path), capacity_bytes=size // 2)
     small.get(a)
     assert list(small._scenes) == [a]
