@@ -247,6 +247,8 @@ def _manifest(svc: Services, scene_id: str, owner: str) -> tuple[str, bytes]:
 def get_mpi_file(scene_id: SceneId, name: str, svc: Svc, owner: Owner) -> Response:
     folder, manifest = _manifest(svc, scene_id, owner)
     stage = {"Scene-Stage": stage_of(folder)}
+    if stage_of(folder) == "preview":  # the final bake's files will have these names: revalidate
+        stage["Cache-Control"] = "no-cache"
     if name == "mpi.json":
         return Response(manifest, media_type="application/json", headers=stage)
     atlases = {m["atlas"] for m in json.loads(manifest)["mpis"]}
