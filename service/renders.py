@@ -83,10 +83,8 @@ class BakedCache:
                 if not local.exists():
                     raise FileNotFoundError(folder)
                 baked = BakedScene.load(local)
-            scene = folder.split("/", 1)[0]
             with self._lock:
-                for other in [k for k in self._scenes if k.split("/", 1)[0] == scene]:
-                    del self._scenes[other]
+                self._drop(folder.split("/", 1)[0])
                 self._scenes[folder] = baked
                 while len(self._scenes) > 1 and self.nbytes > self.capacity_bytes:
                     self._scenes.popitem(last=False)
@@ -101,8 +99,12 @@ class BakedCache:
     def evict(self, scene_id: str) -> None:
         """Drop every loaded folder of scene ``scene_id``."""
         with self._lock:
-            for key in [k for k in self._scenes if k.split("/", 1)[0] == scene_id]:
-                del self._scenes[key]
+            self._drop(scene_id)
+
+    def _drop(self, scene_id: str) -> None:
+        """Forget every loaded folder of scene ``scene_id`` (the lock held)."""
+        for key in [k for k in self._scenes if k.split("/", 1)[0] == scene_id]:
+            del self._scenes[key]
 
     def render(
         self,

@@ -141,15 +141,15 @@ def serves_preview(rec: SceneRecord) -> bool:
     return rec.status in ("training", "baking") and "preview" in rec.stats
 
 
-def viewable_scene(svc: Services, scene_id: str, owner: str) -> tuple[SceneRecord, str]:
-    """The scene and the storage folder its views come from: the final bake of a ready scene, or
-    the preview its job published while it trains (409 scene_not_ready when there is neither)."""
+def viewable_scene(svc: Services, scene_id: str, owner: str) -> str:
+    """The storage folder the scene's views come from: the final bake of a ready scene, or the
+    preview its job published while it trains (409 scene_not_ready when there is neither)."""
     rec = owned_scene(svc, scene_id, owner)
     layout = SceneLayout(scene_id)
     if rec.status == "ready":
-        return rec, layout.baked()
+        return layout.baked()
     if serves_preview(rec):
-        return rec, layout.preview()
+        return layout.preview()
     detail = f"the scene is {rec.status}" + ("; no preview yet" if rec.status in ("training", "baking") else "")
     raise APIError(409, ErrorCode.scene_not_ready, detail, {"status": rec.status})
 

@@ -129,7 +129,7 @@ async def render_view(
     if media is None:
         formats = "image/png (with coverage=true)" if coverage else "image/png or image/jpeg"
         raise APIError(406, ErrorCode.not_acceptable, f"this endpoint returns {formats}")
-    _, folder = await run_in_threadpool(viewable_scene, svc, scene_id, owner)
+    folder = await run_in_threadpool(viewable_scene, svc, scene_id, owner)
     K, pose, w, h = _camera(camera, svc.settings)
 
     def draw() -> tuple[str, bytes]:
@@ -156,7 +156,7 @@ def _render(
     try:
         return folder, svc.renders.render(folder, K, pose, w, h, coverage)
     except FileNotFoundError:
-        _, folder = viewable_scene(svc, scene_id, owner)
+        folder = viewable_scene(svc, scene_id, owner)
         return folder, svc.renders.render(folder, K, pose, w, h, coverage)
 
 
@@ -188,7 +188,7 @@ async def render_depth(
     media = "image/png" if preview else negotiate(accept, ["image/png", "application/x-npy"])
     if media is None:
         raise APIError(406, ErrorCode.not_acceptable, "this endpoint returns image/png or application/x-npy")
-    _, folder = await run_in_threadpool(viewable_scene, svc, scene_id, owner)
+    folder = await run_in_threadpool(viewable_scene, svc, scene_id, owner)
     K, pose, w, h = _camera(camera, svc.settings)
 
     def draw() -> tuple[str, Rendered, bytes]:
@@ -223,7 +223,7 @@ def get_mpi(scene_id: SceneId, svc: Svc, owner: Owner) -> Response:
 def _manifest(svc: Services, scene_id: str, owner: str) -> tuple[str, bytes]:
     """The folder a scene's views come from (:func:`viewable_scene`) and its mpi.json."""
     for _ in range(2):  # a preview removed in between: the scene is ready now
-        _, folder = viewable_scene(svc, scene_id, owner)
+        folder = viewable_scene(svc, scene_id, owner)
         try:
             return folder, svc.storage.read_bytes(f"{folder}/mpi.json")
         except StorageError:
