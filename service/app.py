@@ -18,6 +18,7 @@ from fastapi import FastAPI
 from cmc.images import DECODE_MEMORY
 from service.api import Services, router
 from service.auth import KeyRing
+from service.db import SceneStore
 from service.errors import install_error_handlers
 from service.jobs import CeleryJobQueue, JobQueue
 from service.limits import Limiter, MemoryLimiter, RedisLimiter
@@ -27,7 +28,6 @@ from service.quotas import Quotas, RateLimitHeaders
 from service.renders import BakedCache, RenderQueue
 from service.settings import Settings, load_settings
 from service.storage import Storage, open_storage
-from service.store import SceneStore
 
 log = logging.getLogger("cmc.api")
 

@@ -15,8 +15,8 @@ from prometheus_client import CollectorRegistry, Counter, Histogram, generate_la
 from prometheus_client.core import GaugeMetricFamily, HistogramMetricFamily, Metric
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from service.db import SceneStore
 from service.jobs import JobQueue
-from service.store import SceneStore
 
 log = logging.getLogger("cmc.api")
 JOB_BUCKETS = (30, 60, 120, 300, 600, 1200, 1800, 3600, 7200, 14400, 28800)

@@ -6,8 +6,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from service.db import Status
 from service.errors import ErrorCode
-from service.store import Status
 
 
 class SceneOptions(BaseModel):

@@ -27,7 +27,7 @@ class Settings(BaseSettings):
     database_url: str = Field("", description="SQLAlchemy URL; default: SQLite file in data_dir")
     migrate_on_start: bool = Field(
         True,
-        description="migrate the database schema when the API or a worker starts (service.migrate); the "
+        description="migrate the database schema when the API or a worker starts (service.db.migrate); the "
         "deployment turns this off and runs the compose service 'migrate' once instead",
     )
     storage_dir: Path | None = Field(None, description="artifact storage root; default data_dir/storage")

@@ -63,7 +63,8 @@ def test_training_message_is_sent_as_soon_as_redis_is_back(tmp_path: Path, monke
     import worker.pipeline as pipeline
     from service.app import create_app
     from service.settings import load_settings
-    from worker.pipeline import JobContext, run_job
+    from worker.context import JobContext
+    from worker.pipeline import run_job
 
     server = RedisServer(tmp_path)
     server.start()

@@ -410,7 +410,7 @@ def test_artifacts_in_the_bucket_not_a_shared_volume(compose: dict[str, Any], se
     """The API and the workers store artifacts in MinIO's bucket, which minio-init makes before
     they start; none of them mounts a named volume (they may run on different hosts); each has a
     writable /data of its own (an anonymous volume: the root filesystem is read-only)."""
-    from service.s3storage import S3Storage
+    from service.storage.s3 import S3Storage
 
     minio = services["minio"]
     minio_env = environment(minio)
@@ -496,10 +496,10 @@ def test_healthchecks_and_dependencies(services: dict[str, Any]) -> None:
 
 
 def test_migrations_run_once_before_the_api_and_workers(services: dict[str, Any]) -> None:
-    """The deployed mode migrates the schema in a one-shot step (python -m service.migrate) that
+    """The deployed mode migrates the schema in a one-shot step (python -m service.db.migrate) that
     waits for the database; the API and the workers do not migrate on start themselves."""
     migrate = services["migrate"]
-    assert command(migrate) == ["python", "-m", "service.migrate"]
+    assert command(migrate) == ["python", "-m", "service.db.migrate"]
     assert migrate["image"] == services["api"]["image"] and str(migrate.get("restart", "no")) == "no"
     assert migrate["depends_on"]["db"]["condition"] == "service_healthy"
     assert environment(migrate)["CMC_DATABASE_URL"] == environment(services["api"])["CMC_DATABASE_URL"]

@@ -1,7 +1,8 @@
 """The import rules between the three packages: ``cmc`` (the library) imports neither ``service``
 nor ``worker``; ``service`` imports ``worker`` only in ``service/serve.py`` (the process entry that
 injects the embedded runner), never in ``create_app``. Checked on the source and in a fresh
-interpreter, so a lazy import inside a function counts too."""
+interpreter, so a lazy import inside a function counts too; and no module imports itself through
+others (an import circle)."""
 
 from __future__ import annotations
 
@@ -62,3 +63,79 @@ def test_create_app_loads_no_worker_code(tmp_path: Path) -> None:
     )
     assert "service.app" in loaded and "service.api.views" in loaded
     assert not {m for m in loaded if m.split(".")[0] == "worker"}
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """Module -> the project modules it imports anywhere in its source (lazy imports too; a
+    ``from package import name`` counts as the submodule when ``name`` is one)."""
+    paths = {_module_name(p): p for pkg in ("cmc", "service", "worker") for p in (ROOT / pkg).rglob("*.py")}
+
+    def known(name: str) -> str | None:
+        while name and name not in paths:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph: dict[str, set[str]] = {}
+    for module, path in paths.items():
+        targets: set[str | None] = set()
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                targets |= {known(a.name) for a in node.names}
+            elif isinstance(node, ast.ImportFrom):
+                package = module.split(".")[: len(module.split(".")) - (path.name != "__init__.py")]
+                base = ".".join(package[: len(package) - node.level + 1]) if node.level else ""
+                source = ".".join(p for p in (base, node.module or "") if p)
+                for a in node.names:
+                    sub = f"{source}.{a.name}"
+                    targets.add(sub if sub in paths else known(source))
+        graph[module] = {t for t in targets if t and t != module}
+    return graph
+
+
+def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The import circles: strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_module_imports_itself_through_others() -> None:
+    graph = _import_graph()
+    assert {"service.db.scenes", "worker.pipeline", "cmc.training"} <= graph.keys()
+    assert "service.db.rows" in graph["service.db.scenes"]  # the graph sees imports
+    assert _circles(graph) == []
+
+
+def test_the_circle_finder_finds_a_circle() -> None:
+    assert _circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _circles({"a": {"b"}, "b": set()}) == []

@@ -1,4 +1,4 @@
-"""Schema migrations of the scene store (service.migrate), on SQLite and on the real PostgreSQL at
+"""Schema migrations of the scene store (service.db.migrate), on SQLite and on the real PostgreSQL at
 127.0.0.1:5432 (a throw-away database per test): an empty database migrates to the newest
 revision with exactly the schema the models describe; a database made by the release before
 migrations (the baseline's tables, no ``alembic_version``) keeps its rows and is brought
@@ -13,8 +13,9 @@ import pytest
 from helpers import throwaway_postgres
 from sqlalchemy import create_engine, inspect, text
 
-from service.migrate import BASELINE, current, head, upgrade
-from service.store import Base, SceneStore
+from service.db import SceneStore
+from service.db.migrate import BASELINE, current, head, upgrade
+from service.db.rows import Base
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -58,7 +59,7 @@ def test_an_empty_database_migrates_to_the_models_schema(url: str) -> None:
     got = schema(migrated)
     reference.dispose()
     migrated.dispose()
-    assert got == want, "the migrations and the models (service/store.py) describe different schemas"
+    assert got == want, "the migrations and the models (service/db/rows.py) describe different schemas"
 
 
 @pytest.mark.parametrize("stamped", [False, True])
@@ -67,7 +68,7 @@ def test_a_database_of_the_previous_release_migrates_and_keeps_its_rows(url: str
     table); stamped at the baseline or not, it migrates to the newest revision and its scenes
     survive."""
     engine = create_engine(url)
-    import_module("service.migrations.versions.0001_baseline").META.create_all(engine)
+    import_module("service.db.migrations.versions.0001_baseline").META.create_all(engine)
     if stamped:
         with engine.begin() as conn:
             conn.execute(text("CREATE TABLE alembic_version (version_num VARCHAR(32) NOT NULL PRIMARY KEY)"))
@@ -85,7 +86,7 @@ def test_a_database_of_the_previous_release_migrates_and_keeps_its_rows(url: str
 def test_an_old_scenes_table_gets_its_missing_columns(url: str) -> None:
     """A database from before the outbox (no ``send_at``) is completed by the baseline revision."""
     engine = create_engine(url)
-    import_module("service.migrations.versions.0001_baseline").META.create_all(engine)
+    import_module("service.db.migrations.versions.0001_baseline").META.create_all(engine)
     with engine.begin() as conn:
         conn.execute(text("DROP INDEX ix_scenes_send_at"))
         conn.execute(text("ALTER TABLE scenes DROP COLUMN send_at"))

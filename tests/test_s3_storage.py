@@ -31,9 +31,9 @@ from PIL import Image
 from pydantic import ValidationError
 
 from service.app import create_app
-from service.s3storage import S3Storage
 from service.settings import load_settings
 from service.storage import LocalStorage, Storage, StorageError, open_storage
+from service.storage.s3 import S3Storage
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = "0123456789abcdef0123456789abcdef"
@@ -173,7 +173,7 @@ def test_folder_manifest_is_published_last(storage: Storage, tmp_path: Path) -> 
 WRITER = """
 import sys, time
 from pathlib import Path
-from service.s3storage import S3Storage
+from service.storage.s3 import S3Storage
 
 endpoint, bucket, src, work = sys.argv[1:]
 storage = S3Storage(bucket, "cmc", work, endpoint, multipart_bytes=5 << 20)

@@ -234,7 +234,7 @@ def test_killed_worker_is_resumed_from_its_checkpoint(deployment: Deployment, st
 
     d = deployment
     if storage == "s3":
-        from service.s3storage import S3Storage
+        from service.storage.s3 import S3Storage
 
         endpoint = request.getfixturevalue("s3")
         bucket = new_bucket(endpoint)

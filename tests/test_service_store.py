@@ -9,7 +9,7 @@ import time
 import pytest
 from helpers import throwaway_postgres
 
-from service.store import IdempotencyConflict, SceneStore
+from service.db import IdempotencyConflict, SceneStore
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

@@ -1,11 +1,11 @@
-"""Video builds as jobs (service.videos): one record per scene and path with a lease, progress,
+"""Video builds as jobs (service.db.videos): one record per scene and path with a lease, progress,
 error and cancel, like scene jobs; the reaper sends a build again whose worker went silent."""
 
 from __future__ import annotations
 
 import time
 
-from service.store import SceneStore
+from service.db import SceneStore
 
 
 def _store(tmp_path) -> tuple[SceneStore, str]:

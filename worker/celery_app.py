@@ -38,11 +38,12 @@ from celery import Celery
 from celery.signals import worker_init, worker_ready, worker_shutting_down
 
 from cmc.images import DECODE_MEMORY
+from service.db import SceneStore
 from service.jobs import TASK_NAMES, CeleryJobQueue, task_queues
 from service.settings import Settings, load_settings
 from service.storage import StorageError, open_storage
-from service.store import SceneStore
-from worker.pipeline import DELIVER_EVERY_SECONDS, JobContext, deliver, requeue_stale_jobs, run_job, run_video
+from worker.context import JobContext
+from worker.pipeline import DELIVER_EVERY_SECONDS, deliver, requeue_stale_jobs, run_job, run_video
 from worker.webhooks import deliver as deliver_webhook
 from worker.webhooks import resend_overdue
 

@@ -16,10 +16,11 @@ import queue
 import threading
 from collections.abc import Callable
 
+from service.db import Phase, SceneStore
 from service.settings import Settings
 from service.storage import Storage
-from service.store import Phase, SceneStore
-from worker.pipeline import JobContext, run_job, run_video
+from worker.context import JobContext
+from worker.pipeline import run_job, run_video
 from worker.webhooks import WebhookSender
 
 log = logging.getLogger("cmc.worker")

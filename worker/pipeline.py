@@ -33,22 +33,18 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
-import socket
 import threading
 import time
 import traceback
-import uuid
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
+from service.db import Phase, SceneRecord
 from service.errors import ErrorCode
-from service.jobs import JobQueue
 from service.layout import ClientNames, SceneLayout
 from service.settings import Settings
-from service.storage import Storage
-from service.store import Phase, SceneRecord, SceneStore
+from worker.context import JobContext
+from worker.webhooks import kick as kick_webhooks
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -64,22 +60,6 @@ WAITING = "waiting for a worker"  # the status detail of a job between workers
 QUEUE_DOWN = "waiting for a worker: the job queue cannot be reached; the job is sent as soon as it is back"
 SEND_RETRY_SECONDS = 5.0  # a message taken for sending is due again after this unless it was sent
 DELIVER_EVERY_SECONDS = 1.0  # how often Celery workers send due messages (worker.celery_app)
-
-
-def new_worker_id() -> str:
-    return f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:6]}"
-
-
-@dataclass
-class JobContext:
-    """What a phase needs: the record store, artifact storage, the queue for the next phase."""
-
-    store: SceneStore
-    storage: Storage
-    queue: JobQueue
-    settings: Settings
-    worker_id: str = field(default_factory=new_worker_id)
-    shutdown: threading.Event = field(default_factory=threading.Event)  # set: stop jobs, keep them queued
 
 
 class JobStopped(Exception):
@@ -208,12 +188,6 @@ def failure_code(e: BaseException) -> ErrorCode | None:
         (FloatingPointError, ErrorCode.training_failed),  # training diverged
     )
     return next((code for kind, code in table if isinstance(e, kind)), None)
-
-
-def kick_webhooks(ctx: JobContext, scene_id: str) -> None:
-    from worker.webhooks import kick
-
-    kick(ctx, scene_id)
 
 
 # Share of pose estimation done when a stage starts, for the status' progress (SfM's stages report
@@ -460,7 +434,7 @@ class VideoStopped(Exception):
 
 def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
     """Render the camera-path video ``path`` (spiral, orbit, dolly) of a ready scene into
-    storage, if its build record (service.videos) can be claimed. Progress renews the lease at
+    storage, if its build record (service.db.videos) can be claimed. Progress renews the lease at
     most once a second; a cancelled or lost build stops at the next frame. Returns 'skipped',
     'done', 'failed' or 'stopped'."""
     from cmc.baking import BakedScene

@@ -8,7 +8,7 @@
 * Embedded (``cmc serve``): :class:`WebhookSender`, a thread of the API process that tries every
   due delivery, so webhooks never wait behind a training job.
 
-The database is the truth (:mod:`service.store`): a delivery is claimed before each try, so a
+The database is the truth (:mod:`service.db`): a delivery is claimed before each try, so a
 duplicate message does nothing, and its outcome (status code or error, duration) is appended to
 the delivery log of ``GET /v1/scenes/{id}/webhooks``. A 2xx answer delivers it; anything else
 (an error status, a redirect, a timeout, a refused address) is retried until
@@ -26,8 +26,8 @@ import time
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING
 
+from service.db import SceneStore
 from service.settings import Settings
-from service.store import SceneStore
 from service.webhooks import (
     ID_HEADER,
     SIGNATURE_HEADER,
@@ -40,7 +40,7 @@ from service.webhooks import (
 )
 
 if TYPE_CHECKING:
-    from worker.pipeline import JobContext
+    from worker.context import JobContext
 
 log = logging.getLogger("cmc.webhooks")
 

@@ -12,6 +12,7 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.auth import KeyRing
+from service.db import SceneRecord, SceneStore
 from service.errors import APIError, ErrorCode, not_found
 from service.jobs import JobQueue
 from service.layout import SceneLayout
@@ -21,7 +22,6 @@ from service.renders import BakedCache, RenderQueue
 from service.schemas import ErrorBody
 from service.settings import Settings
 from service.storage import Storage
-from service.store import SceneRecord, SceneStore
 
 
 @dataclass

@@ -27,6 +27,7 @@ from service.api.deps import (
     serves_preview,
     too_many,
 )
+from service.db import IdempotencyConflict, SceneRecord
 from service.errors import APIError, ErrorCode
 from service.layout import CAMERAS_UPLOAD, ClientNames, SceneLayout
 from service.quotas import STATE_KEY, headers_of
@@ -42,7 +43,6 @@ from service.schemas import (
     WebhookLog,
     WebhookSecret,
 )
-from service.store import IdempotencyConflict, SceneRecord
 from service.uploads import check_images, parse_callback_url, parse_cameras, parse_options, receive_upload
 
 log = logging.getLogger("cmc.api")

@@ -82,7 +82,7 @@ def upgrade() -> None:
 def complete(bind: sa.Connection, models: sa.MetaData | None = None) -> None:
     """Create the missing tables of this revision and add the missing columns (with their
     indexes) of existing ones; with ``models``, only the tables and columns they still have.
-    Idempotent; :func:`service.migrate.upgrade` runs it before every upgrade, for a database an
+    Idempotent; :func:`service.db.migrate.upgrade` runs it before every upgrade, for a database an
     older release made that was stamped by hand or lost a column."""
     inspector = sa.inspect(bind)
     for table in META.sorted_tables:

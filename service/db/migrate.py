@@ -1,9 +1,9 @@
-"""Schema migrations of the scene store (Alembic; revisions in service/migrations/versions/).
+"""Schema migrations of the scene store (Alembic; revisions in service/db/migrations/versions/).
 
 :func:`upgrade` brings a database to the newest revision: an empty one is created, one made
 before migrations existed is completed by the baseline revision. The store runs it on open when
 ``CMC_MIGRATE_ON_START`` is true (the default: embedded mode, tests); the deployment turns that
-off and runs ``python -m service.migrate`` once, as the compose service ``migrate``, before the
+off and runs ``python -m service.db.migrate`` once, as the compose service ``migrate``, before the
 API and the workers start.
 """
 
@@ -18,6 +18,9 @@ from alembic.config import Config
 from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy import text
+
+from service.db.engine import open_engine
+from service.db.rows import Base
 
 MIGRATIONS = Path(__file__).resolve().parent / "migrations"
 BASELINE = "0001"  # the schema of the first release with migrations
@@ -47,22 +50,20 @@ def upgrade(engine: Any) -> None:
     First the baseline's tables and columns that the models still use are completed (``complete``
     of revision 0001): a database made before migrations may lack a column its release had not
     added yet, whether or not it was stamped since."""
-    from service.store import Base
-
     with engine.begin() as conn:
         if conn.dialect.name == "postgresql":  # processes starting together migrate one at a time
             conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": LOCK_KEY})
-        import_module("service.migrations.versions.0001_baseline").complete(conn, Base.metadata)
+        import_module("service.db.migrations.versions.0001_baseline").complete(conn, Base.metadata)
         command.upgrade(_config(conn), "head")
 
 
 def main() -> None:
     from service.settings import load_settings
-    from service.store import SceneStore
 
-    store = SceneStore(load_settings().resolved_database_url, migrate=True)
-    print(f"scene store at revision {current(store.engine)} (head {head()})")
-    store.close()
+    engine = open_engine(load_settings().resolved_database_url)
+    upgrade(engine)
+    print(f"scene store at revision {current(engine)} (head {head()})")
+    engine.dispose()
 
 
 if __name__ == "__main__":

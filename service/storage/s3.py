@@ -23,7 +23,7 @@ from botocore.config import Config
 from botocore.exceptions import BotoCoreError, ClientError
 
 from service.settings import Settings
-from service.storage import Storage, StorageError, check_key
+from service.storage.base import Storage, StorageError, check_key
 
 _MISSING = {"404", "NoSuchKey", "NotFound"}
 

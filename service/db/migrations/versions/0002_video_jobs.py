@@ -1,5 +1,5 @@
 """Video builds as jobs: the table ``video_jobs`` (one record per scene and camera path, with the
-lease, progress, error and cancel of scene jobs; service/videos.py).
+lease, progress, error and cancel of scene jobs; service/db/videos.py).
 
 Revision ID: 0002
 Revises: 0001

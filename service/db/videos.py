@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from sqlalchemy import or_, select, update
 from sqlalchemy.orm import Session
 
-from service.store import Heartbeat, VideoRow
+from service.db.rows import Heartbeat, VideoRow
 
 
 @dataclass(frozen=True)

@@ -1,1 +1,0 @@
-"""Alembic migrations of the scene store (service/store.py); run by :mod:`service.migrate`."""
