@@ -60,7 +60,7 @@ sys.path.insert(0, str(ROOT))
 from cmc.cameras import CameraFile, camera_file_to_dict  # noqa: E402
 from cmc.datasets import synthetic_scene  # noqa: E402
 from service.auth import key_digest  # noqa: E402
-from service.db import SceneStore  # noqa: E402
+from service.db.scenes import SceneStore  # noqa: E402
 
 CODES = {"upload": {"too_many_concurrent_jobs", "daily_job_quota_exceeded"}, "render": {"render_rate_limited"}}
 LIMIT_OF_CODE = {

@@ -18,7 +18,7 @@ from fastapi import FastAPI
 from cmc.images import DECODE_MEMORY
 from service.api import Services, router
 from service.auth import KeyRing
-from service.db import SceneStore
+from service.db.scenes import SceneStore
 from service.errors import install_error_handlers
 from service.jobs import CeleryJobQueue, JobQueue
 from service.limits import Limiter, MemoryLimiter, RedisLimiter

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Protocol
 
-from service.db import Phase
+from service.db.rows import Phase
 
 if TYPE_CHECKING:
     from service.settings import Settings

@@ -15,7 +15,7 @@ from prometheus_client import CollectorRegistry, Counter, Histogram, generate_la
 from prometheus_client.core import GaugeMetricFamily, HistogramMetricFamily, Metric
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from service.db import SceneStore
+from service.db.scenes import SceneStore
 from service.jobs import JobQueue
 
 log = logging.getLogger("cmc.api")

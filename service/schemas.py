@@ -6,7 +6,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.db import Status
+from service.db.rows import Status
 from service.errors import ErrorCode
 
 

@@ -13,9 +13,9 @@ import pytest
 from helpers import throwaway_postgres
 from sqlalchemy import create_engine, inspect, text
 
-from service.db import SceneStore
 from service.db.migrate import BASELINE, current, head, upgrade
 from service.db.rows import Base
+from service.db.scenes import SceneStore
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

@@ -1023,7 +1023,7 @@ def test_sigterm_after_pose_estimation_checkpoints_and_resumes(tmp_path: Path) -
     stop must still checkpoint the training job (the preset's 250-step period is never reached)."""
     import torch
 
-    from service.db import SceneStore
+    from service.db.scenes import SceneStore
 
     data = tmp_path / "data"
     server = ServeProcess(data)

@@ -9,7 +9,8 @@ import time
 import pytest
 from helpers import throwaway_postgres
 
-from service.db import IdempotencyConflict, SceneStore
+from service.db.rows import IdempotencyConflict
+from service.db.scenes import SceneStore
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

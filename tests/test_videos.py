@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 
-from service.db import SceneStore
+from service.db.scenes import SceneStore
 
 
 def _store(tmp_path) -> tuple[SceneStore, str]:

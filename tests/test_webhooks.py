@@ -27,7 +27,7 @@ from helpers import REDIS_URL, synthetic_upload
 from test_service_api import RecordingQueue, png, settings_for, wait_for
 
 from service.app import create_app
-from service.db import SceneStore
+from service.db.scenes import SceneStore
 from service.settings import load_settings
 from service.webhooks import CallbackRefused, owner_secret, resolve_callback, sign, verify
 from worker.webhooks import backoff, deliver

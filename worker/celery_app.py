@@ -38,7 +38,7 @@ from celery import Celery
 from celery.signals import worker_init, worker_ready, worker_shutting_down
 
 from cmc.images import DECODE_MEMORY
-from service.db import SceneStore
+from service.db.scenes import SceneStore
 from service.jobs import TASK_NAMES, CeleryJobQueue, task_queues
 from service.settings import Settings, load_settings
 from service.storage import StorageError, open_storage

@@ -8,7 +8,7 @@ import threading
 import uuid
 from dataclasses import dataclass, field
 
-from service.db import SceneStore
+from service.db.scenes import SceneStore
 from service.jobs import JobQueue
 from service.settings import Settings
 from service.storage import Storage

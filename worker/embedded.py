@@ -16,7 +16,8 @@ import queue
 import threading
 from collections.abc import Callable
 
-from service.db import Phase, SceneStore
+from service.db.rows import Phase
+from service.db.scenes import SceneStore
 from service.settings import Settings
 from service.storage import Storage
 from worker.context import JobContext

@@ -39,7 +39,7 @@ import traceback
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from service.db import Phase, SceneRecord
+from service.db.rows import Phase, SceneRecord
 from service.errors import ErrorCode
 from service.layout import ClientNames, SceneLayout
 from service.settings import Settings

@@ -26,7 +26,7 @@ import time
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING
 
-from service.db import SceneStore
+from service.db.scenes import SceneStore
 from service.settings import Settings
 from service.webhooks import (
     ID_HEADER,

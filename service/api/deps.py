@@ -12,7 +12,8 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.auth import KeyRing
-from service.db import SceneRecord, SceneStore
+from service.db.rows import SceneRecord
+from service.db.scenes import SceneStore
 from service.errors import APIError, ErrorCode, not_found
 from service.jobs import JobQueue
 from service.layout import SceneLayout

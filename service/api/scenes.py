@@ -27,7 +27,7 @@ from service.api.deps import (
     serves_preview,
     too_many,
 )
-from service.db import IdempotencyConflict, SceneRecord
+from service.db.rows import IdempotencyConflict, SceneRecord
 from service.errors import APIError, ErrorCode
 from service.layout import CAMERAS_UPLOAD, ClientNames, SceneLayout
 from service.quotas import STATE_KEY, headers_of
