@@ -1,5 +1,6 @@
-"""A writable on-disk cache for the compiled numba kernels (:mod:`cmc.plane_sampling`,
-:mod:`cmc.texture_kernel`), found before the first kernel is defined.
+"""What every compiled numba kernel (:mod:`cmc.plane_sampling`, :mod:`cmc.texture_kernel`,
+:mod:`cmc.sweep_kernel`) shares: a writable on-disk cache, found before the first kernel is
+defined, and the threading of parallel kernels (:data:`PARALLEL_LAUNCH`).
 
 numba looks for a writable cache folder the moment a ``cache=True`` kernel is defined (at import)
 and raises ``RuntimeError: cannot cache function ...`` when it finds none. It tries
@@ -9,7 +10,8 @@ user's environment, a container's read-only root filesystem, a read-only ``$HOME
 them; :func:`prepare` then points numba at a folder of this user's in the temporary directory.
 
 Kernels compiled in advance: ``CMC_KERNEL_CACHE_SEED`` names a cache folder made by
-:func:`cmc.texture_kernel.warm_up` and :func:`cmc.plane_sampling.warm_up` run with
+:func:`cmc.texture_kernel.warm_up`, :func:`cmc.plane_sampling.warm_up` and
+:func:`cmc.sweep_kernel.warm_up` run with
 ``NUMBA_CACHE_DIR`` pointing at it (the Docker images do this at build time). It may be read-only:
 :func:`prepare` copies its files into the cache folder in use, where they are missing, so a fresh
 process loads the kernels instead of compiling them (about 7 s on 2 cores). numba keys each entry
@@ -22,10 +24,20 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+import threading
 from pathlib import Path
 
 import numba
 from numba.misc.appdirs import AppDirs
+
+# Parallel loops on OpenMP first: torch's CPU ops run on the same OpenMP threads in this process,
+# so the kernels get the threads that torch's ops leave spinning, instead of competing with them
+# (a pool of other threads ran the kernels 1.6x slower on two cores).
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+# Held around every launch of a parallel kernel: numba's fallback layer (workqueue) aborts on
+# launches from two threads at once, and two trainings in threads of one process share the cores
+# anyway.
+PARALLEL_LAUNCH = threading.Lock()
 
 SEED_ENV = "CMC_KERNEL_CACHE_SEED"
 

@@ -20,7 +20,6 @@ trains, and nothing here forks.
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Sequence
 
 import numba
@@ -28,14 +27,6 @@ import numpy as np
 import torch
 
 from cmc import kernel_cache
-
-# Parallel loops on OpenMP first: torch's CPU ops run on the same OpenMP threads in this process,
-# so the kernels get the threads that torch's ops leave spinning, instead of competing with them
-# (a pool of other threads ran the kernels 1.6x slower on two cores).
-numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
-# One launch at a time: numba's fallback layer (workqueue) aborts on launches from two threads at
-# once, and two trainings in threads of one process share the cores anyway.
-_LAUNCH = threading.Lock()
 
 
 def _chunks(plane_texture: np.ndarray, parts: int) -> np.ndarray:
@@ -226,7 +217,7 @@ class _SamplePlanes(torch.autograd.Function):
         numba.set_num_threads(min(numba.config.NUMBA_NUM_THREADS, torch.get_num_threads()))
         chunks = _chunks(plane_texture, numba.get_num_threads())
         g = grid.numpy()
-        with _LAUNCH:
+        with kernel_cache.PARALLEL_LAUNCH:
             for tex in textures:
                 _forward_parallel(tex.detach().numpy(), g, plane_texture, out.numpy(), chunks, cubic)
         ctx.save_for_backward(grid)
@@ -243,7 +234,7 @@ class _SamplePlanes(torch.autograd.Function):
             gt = None
             if needed:
                 gt = torch.empty(shape)
-                with _LAUNCH:  # zeroes and fills the textures planes read
+                with kernel_cache.PARALLEL_LAUNCH:  # zeroes and fills the textures planes read
                     _backward_parallel(go, g, ctx.plane_texture, gt.numpy(), ctx.chunks, ctx.cubic)
                 gt[np.setdiff1d(np.arange(shape[0]), ctx.plane_texture)] = 0  # and those none reads
             grads.append(gt)

@@ -179,7 +179,17 @@ def census_distance(ref: torch.Tensor, warped: torch.Tensor, radius: int = CENSU
     """Census distance between a reference image [3, h, w] and warped images [D, 3, h, w]: the
     share of the (2 * radius + 1)^2 - 1 neighbours whose brightness (mean of the channels)
     relative to the centre texel differs in sign between the two -> [D, h, w] in [0, 1].
-    Borders are replicated."""
+    Borders are replicated. On the CPU a compiled kernel (:mod:`cmc.sweep_kernel`) computes it;
+    elsewhere :func:`census_distance_torch`, its twin."""
+    if ref.device.type == "cpu" and ref.dtype == torch.float32:
+        from cmc import sweep_kernel
+
+        return sweep_kernel.census_distance(ref.mean(0), warped.mean(1), radius)
+    return census_distance_torch(ref, warped, radius)
+
+
+def census_distance_torch(ref: torch.Tensor, warped: torch.Tensor, radius: int = CENSUS_RADIUS) -> torch.Tensor:
+    """:func:`census_distance` as torch ops (any device)."""
     h, w = ref.shape[-2:]
     g_ref, g_w = ref.mean(0, keepdim=True)[None], warped.mean(1, keepdim=True)
     p_ref = F.pad(g_ref, (radius,) * 4, mode="replicate")
@@ -206,12 +216,13 @@ def _nearest_inside(coords: torch.Tensor, size: int) -> torch.Tensor:
     return torch.arange(len(coords), device=coords.device).clamp(int(inside[0]), int(inside[-1]))
 
 
-def _window_mean(guide: torch.Tensor, window: int, edge_sigma: float | None):
+def _window_mean(guide: torch.Tensor, window: int, edge_sigma: float | None, compiled: bool = True):
     """A function [C, h, w] -> [C, h, w]: a weighted sum over each texel's window, texels outside
     the grid counting as zero. Uniform weights 1 / window^2 without ``edge_sigma``; else
     ``exp(-mean_c |guide(x) - guide(y)| / edge_sigma)`` (guide [3, h, w]), normalised over the
     window's texels inside the grid. Callers divide two such sums (costs by coverage), so only
-    the relative weights matter."""
+    the relative weights matter. With ``edge_sigma`` on the CPU a compiled kernel sums the windows
+    (:func:`cmc.sweep_kernel.window_sum`, the same result to the bit) unless ``compiled`` is False."""
     r = window // 2
     h, w = guide.shape[-2:]
     if edge_sigma is None:
@@ -225,6 +236,10 @@ def _window_mean(guide: torch.Tensor, window: int, edge_sigma: float | None):
         weights.append(torch.exp(-diff / edge_sigma) * inside[0, dy : dy + h, dx : dx + w])
     total = sum(weights)
     weights = [wt / total for wt in weights]
+    if compiled and guide.device.type == "cpu" and guide.dtype == torch.float32:
+        from cmc import sweep_kernel
+
+        return sweep_kernel.window_sum(torch.stack(weights, -1), window)
 
     def apply(x: torch.Tensor) -> torch.Tensor:
         xp = F.pad(x, (r, r, r, r))
@@ -240,6 +255,15 @@ def alpha_from_weights(weights: torch.Tensor, lo: float = 0.01, hi: float = 0.99
 
 
 def semi_global(cost: torch.Tensor, p1: float, p2: float) -> torch.Tensor:
+    """:func:`semi_global_torch`; on the CPU a compiled kernel (:mod:`cmc.sweep_kernel`)."""
+    if cost.device.type == "cpu" and cost.dtype == torch.float32:
+        from cmc import sweep_kernel
+
+        return sweep_kernel.semi_global(cost, p1, p2)
+    return semi_global_torch(cost, p1, p2)
+
+
+def semi_global_torch(cost: torch.Tensor, p1: float, p2: float) -> torch.Tensor:
     """Semi-global aggregation (Hirschmüller 2008) of a plane-sweep cost [D, h, w] along the four
     axis directions -> [D, h, w], the mean of the four path costs.
 

@@ -10,11 +10,14 @@ from cmc.fields import PyramidFieldConfig
 from cmc.geometry import plane_depths
 from cmc.model import hidden_layer_colours
 from cmc.planesweep import (
+    _window_mean,
     affordable_supersample,
     alpha_from_weights,
     census_distance,
+    census_distance_torch,
     plane_sweep_weights,
     semi_global,
+    semi_global_torch,
 )
 from cmc.rendering import MPIFrame, composite
 
@@ -185,6 +188,39 @@ def test_census_distance_ignores_gain_and_offset_but_not_a_shift():
     shifted = census_distance(img, torch.roll(img, 2, dims=-1)[None])
     assert same.abs().max() == 0
     assert shifted[0, :, 4:-4].mean() > 0.3
+
+
+def test_the_compiled_census_is_its_torch_twin():
+    """The CPU kernel (cmc.sweep_kernel) against the torch ops, on smooth values and on values
+    with ties (a quantised image: equal neighbours are not brighter)."""
+    g = torch.Generator().manual_seed(1)
+    for quantise in (False, True):
+        ref, warped = torch.rand(3, 19, 23, generator=g), torch.rand(5, 3, 19, 23, generator=g)
+        if quantise:
+            ref, warped = (ref * 3).round() / 3, (warped * 3).round() / 3
+        for radius in (1, 3):
+            fast = census_distance(ref, warped, radius)
+            assert fast.shape == (5, 19, 23)
+            assert torch.equal(fast, census_distance_torch(ref, warped, radius))
+            assert fast.std() > 0.05
+
+
+def test_the_compiled_edge_aware_window_sum_is_its_torch_twin():
+    g = torch.Generator().manual_seed(2)
+    guide, x = torch.rand(3, 17, 21, generator=g), torch.rand(7, 17, 21, generator=g)
+    for window in (3, 9):
+        fast = _window_mean(guide, window, 0.1)(x)
+        slow = _window_mean(guide, window, 0.1, compiled=False)(x)
+        assert torch.equal(fast, slow)  # the same sums in the same order
+        assert (fast - x).abs().mean() > 0.05  # it did average
+
+
+def test_the_compiled_semi_global_aggregation_is_its_torch_twin():
+    g = torch.Generator().manual_seed(3)
+    cost = torch.rand(9, 13, 17, generator=g)
+    fast = semi_global(cost, 0.2, 2.0)
+    assert torch.equal(fast, semi_global_torch(cost, 0.2, 2.0))
+    assert (fast - cost).abs().mean() > 0.05
 
 
 def _wall_under_exposure_change(cost: str, temperature: float) -> float:
