@@ -163,7 +163,7 @@ def main() -> None:
         losses = trainer.compute_losses(step)
         sync()
         t1 = time.perf_counter()
-        losses["total"].backward()
+        losses.total.backward()
         sync()
         t2 = time.perf_counter()
         trainer.optimizer.step()

@@ -16,14 +16,14 @@ import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from cmc.config import TrainConfig
+from cmc.config import LossConfig, TrainConfig
 from cmc.datasets import Scene, validate_scene
 from cmc.errors import CheckpointError
 from cmc.eta import TrainingETA
@@ -85,6 +85,45 @@ def _resume_key(config: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in config.items() if k not in _NOT_IN_RESUME_KEY}
 
 
+@dataclass(frozen=True)
+class LossTerms:
+    """The loss terms of one training step, each an unweighted scalar tensor, and ``total``,
+    their sum weighted by :class:`cmc.config.LossConfig` (a term whose weight is 0 is 0)."""
+
+    mse: torch.Tensor  # reconstruction of every input by every MPI (paper Eq. 4.5)
+    dc_input: torch.Tensor  # depth consistency between MPIs at the input views
+    ac: torch.Tensor  # appearance consistency between MPIs at unseen poses (Eq. 4.6)
+    dc: torch.Tensor  # depth consistency between MPIs at unseen poses (Eq. 4.7)
+    distortion: torch.Tensor  # concentration of each ray's opacity
+    alpha_entropy: torch.Tensor  # visible alpha pushed to 0 or 1
+    total: torch.Tensor
+
+    @staticmethod
+    def weighted(
+        lc: LossConfig,
+        mse: torch.Tensor,
+        dc_input: torch.Tensor,
+        ac: torch.Tensor,
+        dc: torch.Tensor,
+        distortion: torch.Tensor,
+        alpha_entropy: torch.Tensor,
+    ) -> LossTerms:
+        """The terms and their sum weighted by ``lc``."""
+        total = (
+            mse
+            + lc.lambda_dc_input * dc_input
+            + lc.lambda_ac * ac
+            + lc.lambda_dc * dc
+            + lc.lambda_distortion * distortion
+            + lc.lambda_alpha_entropy * alpha_entropy
+        )
+        return LossTerms(mse, dc_input, ac, dc, distortion, alpha_entropy, total)
+
+    def floats(self) -> dict[str, float]:
+        """Every term as a float, by name (``total`` included)."""
+        return {f.name: float(getattr(self, f.name).detach()) for f in fields(self)}
+
+
 class Trainer:
     """Trains a :class:`CMCModel` on a scene's input views.
 
@@ -125,7 +164,7 @@ class Trainer:
         s = self.cfg.loss.cross_view_colour
         return [1.0 if j == mpi else s for j in range(len(self.scene))]
 
-    def compute_losses(self, step: int) -> dict[str, torch.Tensor]:
+    def compute_losses(self, step: int) -> LossTerms:
         """All loss terms of step ``step`` (unweighted) and their weighted sum ``total``."""
         cfg, lc = self.cfg, self.cfg.loss
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
@@ -159,50 +198,37 @@ class Trainer:
             for t in range(len(by_target)):
                 dst = t if t < n else None
                 by_target[t] = [replace(o, rgb=exposure.convert(o.rgb, i, dst)) for i, o in enumerate(by_target[t])]
-        losses = {"mse": torch.stack([reconstruction_loss(by_target[j], targets[j]) for j in range(n)]).mean()}
+        mse = torch.stack([reconstruction_loss(by_target[j], targets[j]) for j in range(n)]).mean()
         if lc.depth_consistency == "cauchy":
             scale = 1.0 / (self.model.cfg.num_planes - 1)
             dc_loss = lambda o: robust_depth_consistency(o, self.model.near, self.model.far, scale)  # noqa: E731
         else:
             dc_loss = lambda o: depth_consistency(o, self.depth_scale)  # noqa: E731
-        if full and lc.lambda_dc_input > 0:
-            losses["dc_input"] = torch.stack([dc_loss(by_target[j]) for j in range(n)]).mean()
-        else:
-            losses["dc_input"] = zero
         unseen = by_target[n:]
-        losses["ac"] = torch.stack([appearance_consistency(o) for o in unseen]).mean() if unseen else zero
-        losses["dc"] = torch.stack([dc_loss(o) for o in unseen]).mean() if unseen else zero
         every_out = [o for outs in by_target for o in outs]  # every MPI's render of every target
-        if lc.lambda_distortion > 0:
-            losses["distortion"] = distortion(every_out, self.model.cfg.num_planes)
-        else:
-            losses["distortion"] = zero
-        if lc.lambda_alpha_entropy > 0:
-            losses["alpha_entropy"] = alpha_entropy(every_out)
-        else:
-            losses["alpha_entropy"] = zero
-        losses["total"] = (
-            losses["mse"]
-            + lc.lambda_dc_input * losses["dc_input"]
-            + lc.lambda_ac * losses["ac"]
-            + lc.lambda_dc * losses["dc"]
-            + lc.lambda_distortion * losses["distortion"]
-            + lc.lambda_alpha_entropy * losses["alpha_entropy"]
+        return LossTerms.weighted(
+            lc,
+            mse=mse,
+            dc_input=torch.stack([dc_loss(by_target[j]) for j in range(n)]).mean()
+            if full and lc.lambda_dc_input > 0
+            else zero,
+            ac=torch.stack([appearance_consistency(o) for o in unseen]).mean() if unseen else zero,
+            dc=torch.stack([dc_loss(o) for o in unseen]).mean() if unseen else zero,
+            distortion=distortion(every_out, self.model.cfg.num_planes) if lc.lambda_distortion > 0 else zero,
+            alpha_entropy=alpha_entropy(every_out) if lc.lambda_alpha_entropy > 0 else zero,
         )
-        return losses
 
     def train_step(self) -> dict[str, float]:
         for g in self.optimizer.param_groups:
             g["lr"] = lr_at(self.cfg, self.step)
         self.optimizer.zero_grad(set_to_none=True)
         losses = self.compute_losses(self.step)
-        loss = losses["total"]
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"loss became {loss.item()} at step {self.step}")
-        loss.backward()
+        if not torch.isfinite(losses.total):
+            raise FloatingPointError(f"loss became {losses.total.item()} at step {self.step}")
+        losses.total.backward()
         self.optimizer.step()
         self.step += 1
-        return {k: float(v.detach()) for k, v in losses.items()}
+        return losses.floats()
 
     # -- checkpoints --------------------------------------------------------------------------
     # A checkpoint resumes under any configuration that trains the same run: how often it is

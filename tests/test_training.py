@@ -115,9 +115,9 @@ def test_progress_reports_every_step_with_eta(scene):
 def test_consistency_terms_only_after_warmup(scene):
     cfg = tiny(steps=10)  # recon_only_fraction 0.3 -> steps 0..2 use L_MSE only
     t = Trainer(scene, cfg)
-    assert t.compute_losses(2)["ac"].item() == 0.0
+    assert t.compute_losses(2).ac.item() == 0.0
     late = t.compute_losses(3)
-    assert late["ac"].item() > 0 and late["dc"].item() > 0 and late["dc_input"].item() > 0
+    assert late.ac.item() > 0 and late.dc.item() > 0 and late.dc_input.item() > 0
 
 
 def test_checkpoint_from_other_config_is_refused(scene, tmp_path):

@@ -429,11 +429,11 @@ def test_exposure_compensation_learns_the_gains_and_keeps_the_geometry():
             # read as disagreement (each MPI holds its own photo's brightness).
             trainer.cfg = replace(trainer.cfg, loss=replace(trainer.cfg.loss, lambda_ac=1.0))
             with torch.no_grad():
-                ac = [trainer.compute_losses(trainer.cfg.steps - 1 - s)["ac"].item() for s in range(4)]
+                ac = [trainer.compute_losses(trainer.cfg.steps - 1 - s).ac.item() for s in range(4)]
                 exp = trainer.model.exposure
                 saved = exp.log_gain.clone()
                 exp.log_gain.zero_()  # as if the responses were not converted
-                ac_raw = [trainer.compute_losses(trainer.cfg.steps - 1 - s)["ac"].item() for s in range(4)]
+                ac_raw = [trainer.compute_losses(trainer.cfg.steps - 1 - s).ac.item() for s in range(4)]
                 exp.log_gain.copy_(saved)
             assert np.mean(ac) < 0.5 * np.mean(ac_raw), (ac, ac_raw)
     assert errors[True] < 0.8 * errors[False], errors
