@@ -132,17 +132,20 @@ def test_drag_moves_the_camera(site, static_url, page):
     before = _frame(page, 1)
     start = page.evaluate("() => window.cmcViewer.getCamera()")
     pose0 = np.array(start["world_from_cam"])
-    # The start view is the mean input camera (cmc.camera_paths.mean_pose) with view 0's intrinsics.
+    # The start view is the mean input camera (cmc.camera_paths.mean_pose) with view 0's intrinsics,
+    # scaled to the canvas: the 900x700 window fits 900x675 at the photos' 4:3, which renders at
+    # twice the photos' size (the most it upscales).
     baked = BakedScene.load(site / "baked")
     refs = np.stack([f.world_from_ref.numpy().astype(np.float64) for f in baked.frames])
     assert np.allclose(pose0, mean_pose(refs), atol=1e-6)
-    assert np.allclose(start["K"], baked.frames[0].K.numpy(), atol=1e-4) and start["width"] == W
+    assert (start["width"], start["height"]) == (2 * W, 2 * H)
+    assert np.allclose(start["K"], np.diag([2, 2, 1]) @ baked.frames[0].K.numpy(), atol=1e-4)
     frames = page.evaluate("() => window.cmcViewer.frames")
     box = page.locator("#view").bounding_box()
     x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
     page.mouse.move(x, y)
     page.mouse.down()
-    page.mouse.move(x + 30, y + 10, steps=5)
+    page.mouse.move(x + 200, y + 60, steps=5)
     page.mouse.up()
     after = _frame(page, frames + 1)
     pose1 = np.array(page.evaluate("() => window.cmcViewer.getCamera().world_from_cam"))
@@ -150,6 +153,31 @@ def test_drag_moves_the_camera(site, static_url, page):
     assert np.abs(after - before).mean() > 0.01  # ... and so did the picture
     page.click("#reset-btn")  # back to the start view
     assert np.allclose(page.evaluate("() => window.cmcViewer.getCamera().world_from_cam"), pose0)
+
+
+def test_the_canvas_fills_the_window_at_the_photos_aspect(site, static_url, browser):
+    """A 1280x800 window shows the 4:3 scene 1067x800 (not at the photos' 80x60), renders it at
+    most twice the photos' size, follows a resize, and an exact camera is shown pixel for pixel."""
+    ctx = browser.new_context(viewport={"width": 1280, "height": 800}, device_scale_factor=1)
+    try:
+        pg = ctx.new_page()
+        pg.goto(f"{static_url}/viewer.html?mpi=baked/")
+        _wait_ready(pg)
+        box = pg.locator("#view").bounding_box()
+        assert abs(box["width"] - 800 * 4 / 3) < 1 and abs(box["height"] - 800) < 1
+        assert box["x"] > 100  # centred
+        cam = pg.evaluate("() => window.cmcViewer.getCamera()")
+        assert (cam["width"], cam["height"]) == (2 * W, 2 * H)
+        pg.set_viewport_size({"width": 600, "height": 800})
+        pg.wait_for_function("() => document.getElementById('view').getBoundingClientRect().width < 601")
+        box = pg.locator("#view").bounding_box()
+        assert abs(box["width"] - 600) < 1 and abs(box["height"] - 450) < 1
+        pose = pg.evaluate("() => window.cmcViewer.getCamera().world_from_cam")
+        pg.evaluate("(P) => window.cmcViewer.setCamera(null, P, 40, 30)", pose)
+        box = pg.locator("#view").bounding_box()
+        assert (round(box["width"]), round(box["height"])) == (40, 30)
+    finally:
+        ctx.close()
 
 
 class _FakeAPI(BaseHTTPRequestHandler):
