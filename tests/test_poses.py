@@ -243,6 +243,12 @@ def test_sfm_recovers_known_cameras(scene, tmp_path: Path) -> None:
     np.testing.assert_allclose(loaded.cameras.world_from_cam, est.world_from_cam, atol=1e-9)
     assert sorted(p.name for p in (result.scene_dir / "originals").iterdir()) == [p.name for p in paths]
     assert json.loads(result.cameras_path.read_text())["convention"] == "opengl"
+    # the frame is upright: the mean camera looks down world -z, the photos' up is world +y
+    # (the synthetic cameras' own frame is OpenCV's: their up is -y, so SfM's first photo is too)
+    R = est.world_from_cam[:, :3, :3]
+    assert np.allclose(-R[:, :, 1].mean(0), [0, 1, 0], atol=0.02), R[:, :, 1]
+    assert np.allclose(R[:, :, 2].mean(0), [0, 0, -1], atol=0.02), R[:, :, 2]
+    assert np.allclose(-cams.world_from_cam[:, :3, 1].mean(0), [0, -1, 0], atol=0.02)
 
 
 def test_sfm_is_deterministic_and_scales_to_the_working_size(scene, tmp_path: Path) -> None:

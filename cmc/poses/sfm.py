@@ -6,9 +6,14 @@ from __future__ import annotations
 import shutil
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from cmc.camera_paths import mean_pose
+from cmc.cameras import Cameras
 from cmc.errors import PoseEstimationError
 from cmc.poses.bounds import near_far_from_points
 from cmc.poses.colmap import Cancel, cameras_from_colmap, import_pycolmap, quiet, sparse_points_from_colmap
@@ -28,7 +33,7 @@ from cmc.poses.intake import (
     working_folder,
     write_photos,
 )
-from cmc.poses.options import SUGGESTION, PoseOptions, PoseResult
+from cmc.poses.options import SUGGESTION, PoseOptions, PoseResult, SparsePoints
 
 
 def estimate_poses(
@@ -94,6 +99,7 @@ def estimate_poses(
             to_working = (photos.working_size[0] / photos.sfm_size[0], photos.working_size[1] / photos.sfm_size[1])
             sparse = sparse_points_from_colmap(reconstruction, sfm_names, to_working)
             near_far = near_far_from_points(sparse, cameras, photos)
+            cameras, sparse = upright(cameras, sparse)
         stats = {
             "method": "sfm",
             "registered": len(sfm_names),
@@ -106,6 +112,20 @@ def estimate_poses(
         }
         convention = opt.convention or "opengl"
         return finish(photos, scene_dir, cameras, near_far, convention, timings, stats, t_start, sparse)
+
+
+def upright(cameras: Cameras, sparse: SparsePoints) -> tuple[Cameras, SparsePoints]:
+    """The reconstruction turned about the world origin so that its mean camera
+    (:func:`cmc.camera_paths.mean_pose`) looks down world -z with the photos' up along world +y,
+    the axes of OpenGL and ARKit. SfM's own frame is a photo's OpenCV axes, where up is -y: a
+    client that moves a camera of this scene with +y up (a look-at, an orbit) would turn the view
+    upside down. Depths, near/far and every relative pose are unchanged."""
+    R_mean = mean_pose(cameras.world_from_cam)[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # OpenGL axes
+    turn = R_mean.T
+    poses = cameras.world_from_cam.copy()
+    poses[:, :3, :3] = turn @ poses[:, :3, :3]
+    poses[:, :3, 3] = poses[:, :3, 3] @ turn.T
+    return replace(cameras, world_from_cam=poses), replace(sparse, xyz=sparse.xyz @ turn.T)
 
 
 def _mapping_options(pycolmap: Any, refine_focal: bool, seed: int) -> Any:
