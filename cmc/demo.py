@@ -24,10 +24,21 @@ from cmc.datasets import (
     synthetic_cameras,
     synthetic_scene,
 )
-from cmc.diagnostics import depth_preview
+from cmc.diagnostics import depth_preview, with_depth_legend
 from cmc.images import to_uint8
 from cmc.metrics import psnr
 from cmc.training import Progress, Trainer
+
+# What the summary's numbers mean and what good looks like (the recorded run: bench/demo_cpu.json).
+READING = {
+    "novel_view_psnr_db": "the novel view against the exact ground truth, in dB: the default run (300 steps, "
+    "240x180) scores about 35.6; above 30 the two are hard to tell apart, 25-30 shows soft or slightly doubled "
+    "edges, below 25 the geometry is wrong somewhere (compare novel_view.png with novel_view_ground_truth.png)",
+    "novel_depth_median_abs_rel_error": "median |z - z_true| / z_true of the novel view's depth: about 0.005 "
+    "(0.5 %) in the default run; above 0.05 surfaces sit on the wrong planes",
+    "novel_depth.png": "inverse depth, yellow near to blue far; the strip below maps colours to depths in scene units",
+    "train_seconds": "about 165 s for 300 steps on 2 CPU cores",
+}
 
 
 def run_demo(
@@ -54,7 +65,9 @@ def run_demo(
     save_image(out / "novel_view.png", rgb)
     save_image(out / "novel_view_ground_truth.png", gt_rgb[0])
     np.save(out / "novel_depth.npy", depth.astype(np.float32))
-    save_image(out / "novel_depth.png", depth_preview(depth, scene.near, scene.far))
+    save_image(
+        out / "novel_depth.png", with_depth_legend(depth_preview(depth, scene.near, scene.far), scene.near, scene.far)
+    )
     frames = []
     for pose in orbit_poses(scene.cameras, 24):
         f = baked.render(novel.K[0], pose).rgb.numpy()
@@ -65,6 +78,7 @@ def run_demo(
         "steps": result.steps,
         "novel_view_psnr_db": psnr(rgb, gt_rgb[0]),
         "novel_depth_median_abs_rel_error": float(np.median(np.abs(depth - gt_depth[0]) / gt_depth[0])),
+        "reading": READING,
         "outputs": [
             "novel_view.png",
             "novel_view_ground_truth.png",

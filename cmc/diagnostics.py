@@ -21,6 +21,24 @@ def depth_preview(depth: np.ndarray, near: float, far: float) -> np.ndarray:
     return np.where(t < 0.5, lo + (mid - lo) * (2 * t), mid + (hi - mid) * (2 * t - 1))
 
 
+def with_depth_legend(preview: np.ndarray, near: float, far: float, ticks: int = 5) -> np.ndarray:
+    """``preview`` (:func:`depth_preview`, [H, W, 3]) with a legend strip below it: the colour
+    ramp from near (left) to far (right), evenly in inverse depth as the colours are, and
+    ``ticks`` depths written under it in scene units -> [H + 28, W, 3]."""
+    h, w = preview.shape[:2]
+    inv = 1 / near + (1 / far - 1 / near) * (np.arange(w) + 0.5) / w
+    ramp = depth_preview(np.broadcast_to(1 / inv, (10, w)), near, far)
+    strip = Image.new("RGB", (w, 18))
+    draw = ImageDraw.Draw(strip)
+    for k in range(ticks):
+        x = round((w - 1) * k / (ticks - 1))
+        z = 1 / (1 / near + (1 / far - 1 / near) * k / (ticks - 1))
+        label = f"{z:.3g}"
+        width = draw.textlength(label)
+        draw.text((min(max(0.0, x - width / 2), w - width), 4), label, fill=(220, 220, 220))
+    return np.concatenate([preview, ramp, np.asarray(strip, dtype=np.float64) / 255], 0)
+
+
 def heat(x: np.ndarray, scale: float) -> np.ndarray:
     """[H, W] non-negative values -> [H, W, 3] black-red-yellow-white ramp saturating at ``scale``."""
     t = np.clip(x / scale, 0, 1)[..., None]

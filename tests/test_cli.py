@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from cmc.cameras import CameraFile, save_camera_file
 from cmc.cli import main
@@ -117,6 +118,13 @@ def test_demo_runs_end_to_end(tmp_path):
     for name in ("novel_view.png", "novel_depth.png", "novel_depth.npy", "orbit.gif", "baked/mpi.json"):
         assert (tmp_path / "demo" / name).exists(), name
     assert summary["novel_view_psnr_db"] > 20
+    assert {"novel_view_psnr_db", "novel_depth_median_abs_rel_error"} <= summary["reading"].keys()
+    # the depth map carries its legend: a colour ramp from near (yellow) to far (blue), then labels
+    depth_png = np.asarray(Image.open(tmp_path / "demo" / "novel_depth.png"), dtype=np.float64) / 255
+    assert depth_png.shape == (48 + 28, 64, 3)
+    ramp = depth_png[48 + 5]
+    assert ramp[0, 0] > 0.9 and ramp[0, 2] < 0.4 and ramp[-1, 2] > ramp[-1, 0]  # yellow, then blue
+    assert depth_png[48 + 10 :].max() > 0.5  # the labels
     # The output holds what the summary lists (and the README names), nothing else (no checkpoint).
     listed = {name.rstrip("/") for name in summary["outputs"]} | {"summary.json"}
     assert {p.name for p in (tmp_path / "demo").iterdir()} == listed
