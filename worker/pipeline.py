@@ -50,7 +50,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from cmc.config import TrainConfig
-    from cmc.training import Trainer
+    from cmc.training import Progress, Trainer
 
 log = logging.getLogger("cmc.worker")
 
@@ -327,105 +327,145 @@ def _resume(ctx: JobContext, rec: SceneRecord, trainer: Trainer, make: Callable[
 def _train_and_bake_in(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path, work: Path) -> None:
     """Train on the scene folder ``scene_dir`` with checkpoints written in ``work`` and each one
     published to storage, bake a preview part way, then bake into storage."""
-    from cmc.baking import MANIFEST, bake
-    from cmc.datasets import load_scene_folder
-    from cmc.eta import REFERENCE_STEP_S, bake_steps
-    from cmc.training import Progress, Trainer, TrainingCancelled
+    phase = _TrainPhase(ctx, rec, hb, scene_dir)
+    phase.build()
+    train_s = phase.train(work / "checkpoint.pt")
+    phase.bake_final(train_s)
 
-    s, layout = ctx.settings, SceneLayout(rec.id)
-    scene = load_scene_folder(scene_dir)
-    cfg = _job_config(rec.options, s)
-    cams = scene.cameras
-    bake_cost = bake_steps(cams.width, cams.height, cfg.model.margin, len(scene), cfg.rays_per_view)
-    preview_step = math.ceil(s.preview_at * cfg.steps) if s.preview_at < 1 and "preview" not in rec.stats else None
-    step_s = REFERENCE_STEP_S  # until this worker has measured its own steps
-    hb.set(  # while the model is built: plane sweeps, seconds to minutes
-        status="training",
-        progress=0.0,
-        eta_seconds=round((cfg.steps + (1 + (preview_step is not None)) * bake_cost) * step_s, 1),
-        detail=f"building the model ({cfg.preset} preset: plane sweep)",
-    )
-    hb.flush()
-    device = _training_device(s)
-    trainer = _resume(ctx, rec, Trainer(scene, cfg, device), lambda: Trainer(scene, cfg, device))
-    ckpt_key, ckpt = layout.checkpoint, work / "checkpoint.pt"
-    resumed_from = trainer.step
-    stats = {**rec.stats, "train": {"steps": cfg.steps, "device": str(device), "resumed_from_step": resumed_from}}
-    preview_s = 0.0  # seconds this attempt spent baking the preview (no training step's time)
 
-    def preview_pending() -> bool:
-        return preview_step is not None and "preview" not in stats
+class _TrainPhase:
+    """One attempt at the train phase of a job: the model built (or resumed from the job's
+    checkpoint), trained with progress, ETA and checkpoints, a preview baked part way, the final
+    bake published and the scene made ready. ETAs count in training steps of this worker
+    (``step_s`` seconds each, measured once it trains), a bake as ``bake_cost`` steps."""
 
-    def bake_preview() -> None:
+    def __init__(self, ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path):
+        from cmc.datasets import load_scene_folder
+        from cmc.eta import REFERENCE_STEP_S, bake_steps
+
+        self.ctx, self.rec, self.hb, self.layout = ctx, rec, hb, SceneLayout(rec.id)
+        self.scene = load_scene_folder(scene_dir)
+        self.cfg = cfg = _job_config(rec.options, ctx.settings)
+        cams = self.scene.cameras
+        self.bake_cost = bake_steps(cams.width, cams.height, cfg.model.margin, len(self.scene), cfg.rays_per_view)
+        at = ctx.settings.preview_at
+        self.preview_step = math.ceil(at * cfg.steps) if at < 1 and "preview" not in rec.stats else None
+        self.step_s = REFERENCE_STEP_S  # until this worker has measured its own steps
+        self.preview_s = 0.0  # seconds this attempt spent baking the preview (no training step's time)
+        self.device = _training_device(ctx.settings)
+        self.stats: dict[str, Any] = dict(rec.stats)
+
+    def _preview_pending(self) -> bool:
+        return self.preview_step is not None and "preview" not in self.stats
+
+    def _eta(self, steps_left: float) -> float:
+        return round((steps_left + (1 + self._preview_pending()) * self.bake_cost) * self.step_s, 1)
+
+    def build(self) -> None:
+        """The model (plane sweeps: seconds to minutes), at the stored checkpoint when usable."""
+        from cmc.training import Trainer
+
+        cfg, hb = self.cfg, self.hb
+        hb.set(
+            status="training",
+            progress=0.0,
+            eta_seconds=self._eta(cfg.steps),
+            detail=f"building the model ({cfg.preset} preset: plane sweep)",
+        )
+        hb.flush()
+        make = lambda: Trainer(self.scene, cfg, self.device)  # noqa: E731
+        self.trainer = _resume(self.ctx, self.rec, make(), make)
+        self.resumed_from = resumed = self.trainer.step
+        self.stats["train"] = {"steps": cfg.steps, "device": str(self.device), "resumed_from_step": resumed}
+        hb.set(
+            status="training",
+            progress=resumed / cfg.steps,
+            eta_seconds=self._eta(cfg.steps - resumed),
+            detail=f"training ({cfg.preset} preset, {cfg.steps} steps, {self.device})"
+            + (f", resumed from the checkpoint of step {resumed}" if resumed else ""),
+            stats=self.stats,
+        )
+        hb.flush()
+        if self._preview_pending() and resumed >= self.preview_step:  # type: ignore[operator]
+            self._bake_preview()  # at step 0 (preview_at = 0), or resumed past the step without one
+            self.preview_s = 0.0  # before training: not in its elapsed time
+
+    def _bake_preview(self) -> None:
         """Bake the model as it is now and publish it as the scene's preview (whole, or not at all)."""
-        nonlocal preview_s
-        hb.set(detail=f"baking a preview at step {trainer.step} of {cfg.steps}")
+        from cmc.baking import MANIFEST, bake
+
+        cfg, hb, step = self.cfg, self.hb, self.trainer.step
+        hb.set(detail=f"baking a preview at step {step} of {cfg.steps}")
         hb.flush()
         t = time.perf_counter()
-        with ctx.storage.writing(layout.preview(), manifest=MANIFEST) as folder:
-            bake(trainer.model, folder)
-        preview_s = time.perf_counter() - t
-        stats["preview"] = {
-            "step": trainer.step,
-            "bake_seconds": round(preview_s, 2),
-            "seconds_after_upload": round(time.time() - rec.created_at, 1),
+        with self.ctx.storage.writing(self.layout.preview(), manifest=MANIFEST) as folder:
+            bake(self.trainer.model, folder)
+        self.preview_s = time.perf_counter() - t
+        self.stats["preview"] = {
+            "step": step,
+            "bake_seconds": round(self.preview_s, 2),
+            "seconds_after_upload": round(time.time() - self.rec.created_at, 1),
         }
-        hb.set(stats=stats, detail=f"training ({cfg.preset} preset, {cfg.steps} steps, {device}); preview ready")
+        hb.set(
+            stats=self.stats, detail=f"training ({cfg.preset} preset, {cfg.steps} steps, {self.device}); preview ready"
+        )
         hb.flush()
 
-    hb.set(
-        status="training",
-        progress=trainer.step / cfg.steps,
-        eta_seconds=round((cfg.steps - trainer.step + (1 + preview_pending()) * bake_cost) * step_s, 1),
-        detail=f"training ({cfg.preset} preset, {cfg.steps} steps, {device})"
-        + (f", resumed from the checkpoint of step {resumed_from}" if resumed_from else ""),
-        stats=stats,
-    )
-    hb.flush()
-    if preview_pending() and trainer.step >= preview_step:  # type: ignore[operator]
-        bake_preview()  # at step 0 (preview_at = 0), or resumed past the step without one
-        preview_s = 0.0  # before training: not in its elapsed time
-    t0 = time.perf_counter()
+    def _on_progress(self, p: Progress) -> None:
+        self.step_s = (p.elapsed_s - self.preview_s) / (p.step - self.resumed_from)
+        bakes = 1 + self._preview_pending()
+        self.hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s + bakes * self.bake_cost * self.step_s, 1))
+        if self._preview_pending() and p.step >= self.preview_step:  # type: ignore[operator]
+            self._bake_preview()
 
-    def on_progress(p: Progress) -> None:
-        nonlocal step_s
-        step_s = (p.elapsed_s - preview_s) / (p.step - resumed_from)
-        bakes = 1 + preview_pending()
-        hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s + bakes * bake_cost * step_s, 1))
-        if preview_pending() and p.step >= preview_step:  # type: ignore[operator]
-            bake_preview()
-
-    def publish_checkpoint(path: Path) -> None:
+    def _publish_checkpoint(self, path: Path) -> None:
         try:
-            ctx.storage.publish(ckpt_key, path)
+            self.ctx.storage.publish(self.layout.checkpoint, path)
         except Exception:  # only for resuming: the next one may get through
-            log.warning("job %s: could not store the checkpoint of step %d", rec.id, trainer.step, exc_info=True)
+            log.warning(
+                "job %s: could not store the checkpoint of step %d", self.rec.id, self.trainer.step, exc_info=True
+            )
 
-    try:
-        trainer.fit(
-            on_progress=on_progress,
-            should_stop=hb.should_stop,
-            checkpoint_path=ckpt,
-            resume=False,
-            checkpoint_seconds=s.checkpoint_seconds,
-            on_checkpoint=publish_checkpoint,
+    def train(self, checkpoint: Path) -> float:
+        """Train to the last step (checkpoints written at ``checkpoint``); the seconds it took."""
+        from cmc.training import TrainingCancelled
+
+        t0 = time.perf_counter()
+        try:
+            self.trainer.fit(
+                on_progress=self._on_progress,
+                should_stop=self.hb.should_stop,
+                checkpoint_path=checkpoint,
+                resume=False,
+                checkpoint_seconds=self.ctx.settings.checkpoint_seconds,
+                on_checkpoint=self._publish_checkpoint,
+            )
+        except TrainingCancelled:
+            raise JobStopped(self.hb.reason or "cancelled") from None
+        return time.perf_counter() - t0
+
+    def bake_final(self, train_s: float) -> None:
+        """Publish the final bake, make the scene ready, and drop the checkpoint and the preview."""
+        from cmc.baking import MANIFEST, bake
+
+        ctx, hb, layout = self.ctx, self.hb, self.layout
+        hb.set(
+            status="baking", progress=0.0, eta_seconds=round(self.bake_cost * self.step_s, 1), detail="baking the MPIs"
         )
-    except TrainingCancelled:
-        raise JobStopped(hb.reason or "cancelled") from None
-    train_s = time.perf_counter() - t0
-    hb.set(status="baking", progress=0.0, eta_seconds=round(bake_cost * step_s, 1), detail="baking the MPIs")
-    hb.flush()
-    hb.check()
-    t0 = time.perf_counter()
-    with ctx.storage.writing(layout.baked(), manifest=MANIFEST) as baked:
-        bake(trainer.model, baked)
-    stats["train"].update(seconds_this_attempt=round(train_s, 2), bake_seconds=round(time.perf_counter() - t0, 2))
-    ready = dict(progress=1.0, eta_seconds=0.0, detail=None, stats=stats)
-    if not ctx.store.advance(rec.id, ctx.worker_id, "done", "ready", **ready):
-        raise JobStopped("lease_lost")
-    ctx.storage.delete(ckpt_key)  # the baked MPI is the product; the checkpoint was for resuming
-    for key in ctx.storage.list(layout.preview()):  # the API serves the final bake now
-        ctx.storage.delete(key)
+        hb.flush()
+        hb.check()
+        t0 = time.perf_counter()
+        with ctx.storage.writing(layout.baked(), manifest=MANIFEST) as baked:
+            bake(self.trainer.model, baked)
+        self.stats["train"].update(
+            seconds_this_attempt=round(train_s, 2), bake_seconds=round(time.perf_counter() - t0, 2)
+        )
+        ready = dict(progress=1.0, eta_seconds=0.0, detail=None, stats=self.stats)
+        if not ctx.store.advance(self.rec.id, ctx.worker_id, "done", "ready", **ready):
+            raise JobStopped("lease_lost")
+        ctx.storage.delete(layout.checkpoint)  # the baked MPI is the product; the checkpoint was for resuming
+        for key in ctx.storage.list(layout.preview()):  # the API serves the final bake now
+            ctx.storage.delete(key)
 
 
 class VideoStopped(Exception):
