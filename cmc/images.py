@@ -232,10 +232,6 @@ def _give_back_freed_memory() -> None:
         _MALLOC_TRIM(0)
 
 
-# Every decode of :func:`load_resized` in this process (upload checks, pose estimation) draws on
-# this budget; the service sets its size from ``CMC_DECODE_MEMORY_BYTES``.
-DECODE_MEMORY = MemoryBudget(512 << 20)
-
 _TRANSPOSE = {
     2: Image.Transpose.FLIP_LEFT_RIGHT,
     3: Image.Transpose.ROTATE_180,
@@ -264,17 +260,24 @@ def decode_bytes(im: Image.Image, full_size: tuple[int, int]) -> int:
     return per_pixel * w * h + codec + (8 << 20)
 
 
-def load_resized(info: PhotoInfo, sizes: Sequence[tuple[int, int]], max_pixels: int = MAX_PIXELS) -> list[Image.Image]:
+def load_resized(
+    info: PhotoInfo,
+    sizes: Sequence[tuple[int, int]],
+    max_pixels: int = MAX_PIXELS,
+    budget: MemoryBudget | None = None,
+) -> list[Image.Image]:
     """Decode a photo once: upright (EXIF orientation applied), RGB, resized to each of ``sizes``.
 
     JPEGs are decoded at a reduced DCT scale when the largest requested size allows it. The
     decoded image is resized before it is turned upright, so it is held once (plus an RGB copy
     for palette, alpha and 16-bit images); the decode waits for its :func:`decode_bytes` in
-    :data:`DECODE_MEMORY`, which bounds the memory of concurrent decodes.
+    ``budget``, which bounds the memory of concurrent decodes.
 
     Args:
         info: from :func:`read_photo_info`.
         sizes: (width, height) pairs in pixels, e.g. from :func:`resized_size`.
+        budget: the budget the process's decodes share (the service's: ``CMC_DECODE_MEMORY_BYTES``);
+            None: this decode waits for no other.
     Returns:
         RGB images, in the order of ``sizes``.
     Raises:
@@ -288,7 +291,7 @@ def load_resized(info: PhotoInfo, sizes: Sequence[tuple[int, int]], max_pixels: 
             if im.format == "JPEG":  # draft keeps the decoded size >= the requested one
                 s = max(max(wh) for wh in sizes) / max(info.width, info.height)
                 im.draft("RGB", (math.ceil(im.size[0] * s), math.ceil(im.size[1] * s)))
-            with DECODE_MEMORY.reserve(decode_bytes(im, full_size)):
+            with (budget or MemoryBudget(0)).reserve(decode_bytes(im, full_size)):
                 im.load()
                 full = im if im.mode in ("RGB", "L") else im.convert("RGB")  # LANCZOS needs RGB or L
                 if full is not im:

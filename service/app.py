@@ -15,7 +15,7 @@ from typing import Any
 
 from fastapi import FastAPI
 
-from cmc.images import DECODE_MEMORY
+from cmc.images import MemoryBudget
 from service.api import Services, router
 from service.auth import KeyRing
 from service.db.scenes import SceneStore
@@ -31,7 +31,7 @@ from service.storage import Storage, open_storage
 
 log = logging.getLogger("cmc.api")
 
-# Threads that check uploaded photos (decodes wait there for DECODE_MEMORY), apart from the thread
+# Threads that check uploaded photos (decodes wait there for the decode budget), apart from the thread
 # pool of the other routes, so uploads waiting for memory never hold up status polls or probes.
 INTAKE_THREADS = 4
 
@@ -45,7 +45,7 @@ Cameras use the transforms.json shape with a `convention` field (`opengl`, ARKit
 """
 
 
-def installed_runner() -> Callable[[SceneStore, Storage, Settings], Any]:
+def installed_runner() -> Callable[[SceneStore, Storage, Settings, MemoryBudget], Any]:
     """The in-process job runner worker/ registers under the ``cmc.job_runners`` entry point
     (pyproject.toml), found by name so that the API does not import the workers."""
     found = list(entry_points(group="cmc.job_runners", name="embedded"))
@@ -58,10 +58,10 @@ def create_app(
     settings: Settings | None = None,
     queue: JobQueue | None = None,
     limiter: Limiter | None = None,
-    embedded_runner: Callable[[SceneStore, Storage, Settings], Any] | None = None,
+    embedded_runner: Callable[[SceneStore, Storage, Settings, MemoryBudget], Any] | None = None,
 ) -> FastAPI:
     """Build the app. Without ``queue``: Celery (``settings.mode == 'celery'``) or the embedded
-    runner, ``embedded_runner(store, storage, settings)`` (``cmc serve`` passes
+    runner, ``embedded_runner(store, storage, settings, decode_memory)`` (``cmc serve`` passes
     ``worker.embedded.EmbeddedRunner``; default :func:`installed_runner`), a JobQueue started and
     stopped with the app's lifespan. Without ``limiter``: the quotas are counted in Redis (the
     broker) in celery mode, in memory embedded."""
@@ -69,19 +69,19 @@ def create_app(
     store = SceneStore(settings.resolved_database_url, migrate=settings.migrate_on_start)
     storage = open_storage(settings)
     keys = KeyRing.load(settings.api_keys, settings.api_keys_file)
+    decode_memory = MemoryBudget(settings.decode_memory_bytes)  # this process's photo decodes, jobs' included
     runner = None
     if queue is None:
         if settings.mode == "celery":
             queue = CeleryJobQueue.from_settings(settings)
         else:
-            runner = (embedded_runner or installed_runner())(store, storage, settings)
+            runner = (embedded_runner or installed_runner())(store, storage, settings, decode_memory)
             queue = runner
     metrics = Metrics(store, queue)
     if limiter is None:
         limiter = RedisLimiter(settings.broker_url) if settings.mode == "celery" else MemoryLimiter()
     quotas = Quotas(settings, limiter, not keys.open, lambda limit: metrics.rate_limited.labels(limit).inc())
     render_queue = RenderQueue(settings.render_concurrency, settings.render_queue)
-    DECODE_MEMORY.capacity = settings.decode_memory_bytes  # this process's photo decodes, jobs' included
     intake = ThreadPoolExecutor(INTAKE_THREADS, thread_name_prefix="cmc-intake")
 
     @asynccontextmanager
@@ -103,7 +103,9 @@ def create_app(
 
     app = FastAPI(title="CMC reconstruction service", version="1.0.0", description=DESCRIPTION, lifespan=lifespan)
     renders = BakedCache(storage, settings.render_cache_bytes, settings.render_threads)
-    app.state.services = Services(settings, store, storage, queue, keys, renders, metrics, render_queue, quotas, intake)
+    app.state.services = Services(
+        settings, store, storage, queue, keys, renders, metrics, render_queue, quotas, intake, decode_memory
+    )
     install_error_handlers(app)
     app.add_middleware(RateLimitHeaders)
     app.add_middleware(BodyGuard, keys=keys, max_json_bytes=settings.max_json_bytes, streamed={("POST", "/v1/scenes")})

@@ -23,7 +23,7 @@ import hashlib
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 from pydantic import ValidationError
 from python_multipart.multipart import MultipartParser, parse_options_header
@@ -33,6 +33,9 @@ from service.errors import APIError, ErrorCode
 from service.layout import ClientNames
 from service.schemas import SceneOptions
 from service.settings import Settings
+
+if TYPE_CHECKING:
+    from cmc.images import MemoryBudget
 
 _EXTENSIONS = {"JPEG": ".jpg", "PNG": ".png", "WEBP": ".webp", "HEIF": ".heic"}
 
@@ -165,9 +168,10 @@ async def receive_upload(request: Request, settings: Settings, folder: Path) -> 
     return reader.upload
 
 
-def check_images(upload: Upload, settings: Settings) -> list[str]:
-    """Sniff every photo by content, check pixels and that it decodes; rename each file to the
-    extension of its real format. Returns the storage names. Raises APIError 413/415/422."""
+def check_images(upload: Upload, settings: Settings, decode_memory: MemoryBudget | None = None) -> list[str]:
+    """Sniff every photo by content, check pixels and that it decodes (waiting for its memory in
+    ``decode_memory``, when given); rename each file to the extension of its real format.
+    Returns the storage names. Raises APIError 413/415/422."""
     from cmc.datasets import SceneError
     from cmc.images import (
         ImageTooLargeError,
@@ -190,7 +194,7 @@ def check_images(upload: Upload, settings: Settings) -> list[str]:
             if part.size == 0:
                 raise SceneError(f"{label} is empty")
             info = read_photo_info(part.path, settings.max_image_pixels)
-            load_resized(info, [resized_size(info.width, info.height, 64)], settings.max_image_pixels)
+            load_resized(info, [resized_size(info.width, info.height, 64)], settings.max_image_pixels, decode_memory)
         except UnsupportedImageError:
             raise APIError(415, ErrorCode.unsupported_image, f"{label} is not a {accepted_formats()} image") from None
         except ImageTooLargeError:

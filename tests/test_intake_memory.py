@@ -124,12 +124,13 @@ def test_uploads_waiting_for_decode_memory_never_hold_up_probes_and_status(tmp_p
 
     import uvicorn
 
-    from cmc.images import DECODE_MEMORY
     from service.app import create_app
     from service.settings import load_settings
 
     settings = load_settings(data_dir=tmp_path, mode="embedded", api_keys="", api_keys_file=None)
-    server = uvicorn.Server(uvicorn.Config(create_app(settings, queue=NoJobs()), port=0, log_level="warning"))
+    app = create_app(settings, queue=NoJobs())
+    budget = app.state.services.decode_memory  # what the upload checks' decodes draw on
+    server = uvicorn.Server(uvicorn.Config(app, port=0, log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     while not server.started:
@@ -140,7 +141,7 @@ def test_uploads_waiting_for_decode_memory_never_hold_up_probes_and_status(tmp_p
     try:
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=120) as client, ThreadPoolExecutor(48) as pool:
             sid = client.post("/v1/scenes", files=files).json()["id"]
-            with DECODE_MEMORY.reserve(DECODE_MEMORY.capacity):  # every decode now waits
+            with budget.reserve(budget.capacity):  # every decode now waits
                 uploads = [pool.submit(client.post, "/v1/scenes", files=files) for _ in range(48)]
                 time.sleep(1.0)  # all of them arrived and wait
                 assert not any(u.done() for u in uploads)

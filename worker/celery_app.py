@@ -37,7 +37,7 @@ import billiard.process
 from celery import Celery
 from celery.signals import worker_init, worker_ready, worker_shutting_down
 
-from cmc.images import DECODE_MEMORY
+from cmc.images import MemoryBudget
 from service.db.scenes import SceneStore
 from service.jobs import TASK_NAMES, CeleryJobQueue, task_queues
 from service.settings import Settings, load_settings
@@ -71,7 +71,7 @@ def create_celery(settings: Settings) -> Celery:
 
 settings = load_settings(mode="celery")
 app = create_celery(settings)
-DECODE_MEMORY.capacity = settings.decode_memory_bytes  # photo decodes of pose estimation
+decode_memory = MemoryBudget(settings.decode_memory_bytes)  # photo decodes of pose estimation
 _ctx: JobContext | None = None  # one per worker process, made after the fork
 _ctx_lock = threading.Lock()  # the webhook worker runs tasks in threads
 _shutdown = threading.Event()  # set: the job running in this process checkpoints and stops
@@ -80,7 +80,7 @@ _shutdown = threading.Event()  # set: the job running in this process checkpoint
 def new_context() -> JobContext:
     queue = CeleryJobQueue.from_settings(settings)
     store = SceneStore(settings.resolved_database_url, migrate=settings.migrate_on_start)
-    return JobContext(store, open_storage(settings), queue, settings, shutdown=_shutdown)
+    return JobContext(store, open_storage(settings), queue, settings, shutdown=_shutdown, decode_memory=decode_memory)
 
 
 def context() -> JobContext:

@@ -8,6 +8,7 @@ import threading
 import uuid
 from dataclasses import dataclass, field
 
+from cmc.images import MemoryBudget
 from service.db.scenes import SceneStore
 from service.jobs import JobQueue
 from service.settings import Settings
@@ -28,3 +29,6 @@ class JobContext:
     settings: Settings
     worker_id: str = field(default_factory=new_worker_id)
     shutdown: threading.Event = field(default_factory=threading.Event)  # set: stop jobs, keep them queued
+    # The budget of photo decodes this process's jobs share (with its API's uploads, embedded);
+    # None: unbounded.
+    decode_memory: MemoryBudget | None = None

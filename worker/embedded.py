@@ -16,6 +16,7 @@ import queue
 import threading
 from collections.abc import Callable
 
+from cmc.images import MemoryBudget
 from service.db.rows import Phase
 from service.db.scenes import SceneStore
 from service.settings import Settings
@@ -28,8 +29,8 @@ log = logging.getLogger("cmc.worker")
 
 
 class EmbeddedRunner:
-    def __init__(self, store: SceneStore, storage: Storage, settings: Settings):
-        self.ctx = JobContext(store, storage, self, settings)
+    def __init__(self, store: SceneStore, storage: Storage, settings: Settings, decode_memory: MemoryBudget):
+        self.ctx = JobContext(store, storage, self, settings, decode_memory=decode_memory)
         self._jobs: queue.Queue[tuple[str, Callable[[], object]] | None] = queue.Queue()
         self._thread = threading.Thread(target=self._loop, name="cmc-embedded-runner", daemon=True)
         self.webhooks = WebhookSender(store, settings)

@@ -235,6 +235,7 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
         keep_originals=False,  # storage keeps the uploads
         max_pixels=ctx.settings.max_image_pixels,
         convention="opencv",
+        decode_memory=ctx.decode_memory,
     )
     hooks = dict(should_stop=hb.should_stop, on_stage=on_stage)
     try:

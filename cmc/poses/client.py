@@ -82,7 +82,7 @@ def poses_from_client(
             _check_client_sizes(client_cams, photos)
             scene_dir = prepare_scene_dir(scene_dir)
             sfm_dir = work / "sfm_images" if need_depths else None
-            write_photos(photos, scene_dir, sfm_dir, opt.max_pixels, opt.keep_originals)
+            write_photos(photos, scene_dir, sfm_dir, opt.max_pixels, opt.keep_originals, opt.decode_memory)
         cancel.check()
         stats: dict[str, Any] = {"method": "client", "near_far_from": "file" if not need_depths else "triangulation"}
         if not need_depths:

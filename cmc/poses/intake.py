@@ -23,7 +23,7 @@ import numpy as np
 from cmc.cameras import CameraFile, Cameras, PoseConvention, save_camera_file
 from cmc.datasets import CAMERAS_FILE, SceneError
 from cmc.errors import PoseEstimationError
-from cmc.images import PhotoInfo, load_resized, read_photo_info, resized_size, save_png
+from cmc.images import MemoryBudget, PhotoInfo, load_resized, read_photo_info, resized_size, save_png
 from cmc.poses.colmap import Cancel
 from cmc.poses.options import PoseResult, SparsePoints
 
@@ -117,13 +117,21 @@ def read_photos(image_paths: Sequence[str | Path], long_side: int, max_sift_size
     return Photos(infos, _unique_names(paths), [], sizes[0], [], sfm_size, [])
 
 
-def write_photos(photos: Photos, scene_dir: Path, sfm_dir: Path | None, max_pixels: int, keep_originals: bool) -> None:
-    """Decode each photo once; write its working image (and SfM-size copy into ``sfm_dir``)."""
+def write_photos(
+    photos: Photos,
+    scene_dir: Path,
+    sfm_dir: Path | None,
+    max_pixels: int,
+    keep_originals: bool,
+    decode_memory: MemoryBudget | None = None,
+) -> None:
+    """Decode each photo once (waiting for its memory in ``decode_memory``, when given); write its
+    working image (and SfM-size copy into ``sfm_dir``)."""
     photos.working_paths = [scene_dir / IMAGES_DIR / f"{n}.png" for n in photos.names]
     photos.sfm_paths = [sfm_dir / f"{n}.png" for n in photos.names] if sfm_dir is not None else []
     wanted = [photos.working_size] + ([photos.sfm_size] if sfm_dir is not None else [])
     for k, info in enumerate(photos.infos):
-        decoded = load_resized(info, wanted, max_pixels)
+        decoded = load_resized(info, wanted, max_pixels, decode_memory)
         save_png(decoded[0], photos.working_paths[k])
         if sfm_dir is not None:
             save_png(decoded[1], photos.sfm_paths[k], fast=True)

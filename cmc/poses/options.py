@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from cmc.cameras import CameraFile, PoseConvention
-from cmc.images import MAX_PIXELS
+from cmc.images import MAX_PIXELS, MemoryBudget
 
 # the remedy a PoseEstimationError about the photos ends with
 SUGGESTION = (
@@ -42,6 +42,8 @@ class PoseOptions:
         convention: camera axes written to cameras.json ('opengl' as nerfstudio/ARKit, or
             'opencv'); None: 'opengl' for SfM, the input file's for client poses.
         verbose: let COLMAP log to stderr.
+        decode_memory: the budget the photo decodes share with the process's other decodes
+            (:meth:`cmc.images.MemoryBudget.reserve`); None: they wait for none.
     """
 
     long_side: int = 504
@@ -52,6 +54,7 @@ class PoseOptions:
     max_pixels: int = MAX_PIXELS
     convention: PoseConvention | None = None
     verbose: bool = False
+    decode_memory: MemoryBudget | None = None
 
     def updated(self, **changes: Any) -> PoseOptions:
         """A copy with ``changes`` (field names only; a misspelt one raises TypeError)."""

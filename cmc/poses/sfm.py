@@ -73,7 +73,7 @@ def estimate_poses(
         with stage(timings, "intake"):
             photos = read_photos(image_paths, opt.long_side, opt.max_sift_size, opt.max_pixels)
             scene_dir = prepare_scene_dir(scene_dir)
-            write_photos(photos, scene_dir, work / "sfm_images", opt.max_pixels, opt.keep_originals)
+            write_photos(photos, scene_dir, work / "sfm_images", opt.max_pixels, opt.keep_originals, opt.decode_memory)
         refuse_identical(photos)
         cancel.check()
         single_camera = one_device(photos)

@@ -11,6 +11,7 @@ from typing import Annotated, Any
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from cmc.images import MemoryBudget
 from service.auth import KeyRing
 from service.db.rows import SceneRecord
 from service.db.scenes import SceneStore
@@ -39,6 +40,7 @@ class Services:
     render_queue: RenderQueue
     quotas: Quotas
     intake: Executor  # checks of uploaded photos (service.app.INTAKE_THREADS)
+    decode_memory: MemoryBudget  # what their decodes (and an embedded runner's) may hold at once
 
 
 def get_services(request: Request) -> Services:

@@ -189,7 +189,7 @@ async def _create_scene(
                             409, ErrorCode.idempotency_conflict, "this Idempotency-Key was used for a different upload"
                         )
                     return _created(existing, replayed=True)  # nothing of this upload was stored
-            stored = await asyncio.wrap_future(svc.intake.submit(check_images, upload, s))
+            stored = await asyncio.wrap_future(svc.intake.submit(check_images, upload, s, svc.decode_memory))
             options = parse_options(upload, s)
             callback_url = await run_in_threadpool(parse_callback_url, upload, s)
             cameras = await run_in_threadpool(parse_cameras, upload, stored)
