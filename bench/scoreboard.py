@@ -1,0 +1,183 @@
+"""Write bench/SCOREBOARD.md: the current numbers of the `fast` preset on one page, each table
+from the JSON reports it names (numbers are never typed). The pages that hold how each number
+came to be are listed at its end.
+
+Usage: python bench/scoreboard.py  (from the repository root)
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+
+# The current report of each kind. A new measurement of today's preset replaces its entry here.
+SCENE_REPORTS = {s: f"scenes_{s}_test_sgm2_steps300.json" for s in ("fern", "room", "trex")}
+SYNTHETIC_REPORT = "view_quality_synthetic_sgm2_steps300.json"
+POSE_REPORTS = {"fern": "poses_e2e.json", "room": "poses_e2e_room.json", "trex": "poses_e2e_trex.json"}
+PROFILE_REPORT = "profile_job_fern_cpu.json"
+BUILD_REPORT = "model_build_time_fern.json"
+RENDER_REPORT = "render_speed_sgm2_steps300.json"
+# Issue 38's targets on the test views: PSNR / SSIM / LPIPS-vgg (None: no target).
+TARGETS = {"fern": (23.8, 0.78, 0.17), "room": (21.40 + 1.5, None, 0.25), "trex": (20.24 + 1.5, None, 0.25)}
+PAGES = [
+    ("SCENES.md", "view quality per scene, every experiment on the real scenes' validation and test views"),
+    ("EXPLORE.md", "variants of `fast` on the validation views of fern, room and trex (lent GPU)"),
+    ("PRESET_HISTORY.md", "why each setting of `fast` is what it is, oldest first"),
+    ("PROFILE.md", "where the time of one job goes, stage by stage, on the CPU and a GPU"),
+    ("DIAGNOSIS.md", "where views go wrong and what was tried against it"),
+    ("poses_e2e.md", "how the estimated-pose runs are registered and scored"),
+    ("RESULTS.md", "every earlier measurement (serving, service, load, poses, ablations), as measured"),
+]
+
+
+def load(name: str) -> dict[str, Any] | None:
+    path = HERE / name
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def source(report: dict[str, Any], name: str) -> str:
+    return f"`{name}` ({report.get('git_commit', '?')}, {str(report.get('date', '?'))[:10]})"
+
+
+def triple(m: dict[str, Any]) -> str:
+    return f"{m['psnr']:.2f} / {m['ssim']:.3f} / {m['lpips_vgg']:.3f}"
+
+
+def view_quality() -> list[str]:
+    out = [
+        "## View quality of `fast` on the real scenes (test views)",
+        "",
+        "RegNeRF's 3-view protocol at 504x378 (every 8th image tested, 3 training views evenly from the",
+        "rest), baked renderer, 2-core CPU. `CMC_LPIPS_DIR=../shared/weights cmc bench llff --data",
+        "../shared/datasets/llff --scenes S --views test --out bench/REPORT`.",
+        "",
+        "| scene | PSNR / SSIM / LPIPS-vgg | target (issue 38) | met | train s | report |",
+        "|---|---|---|---|---|---|",
+    ]
+    for scene, name in SCENE_REPORTS.items():
+        r = load(name)
+        if r is None:
+            continue
+        m = r["mean"]
+        t = TARGETS[scene]
+        target = " / ".join("-" if v is None else (f">= {v:.2f}" if i < 2 else f"<= {v:.2f}") for i, v in enumerate(t))
+        met = all(
+            v is None or (m[k] >= v if i < 2 else m[k] <= v)
+            for i, (k, v) in enumerate(zip(("psnr", "ssim", "lpips_vgg"), t, strict=True))
+        )
+        verdict = "yes" if met else "no"
+        out.append(f"| {scene} | {triple(m)} | {target} | {verdict} | {m['train_seconds']:.0f} | {source(r, name)} |")
+    r = load(SYNTHETIC_REPORT)
+    if r is not None:
+        out += [
+            "",
+            "The wide-baseline synthetic set (cards, posts, slanted; known depth): `CMC_LPIPS_DIR=../shared/weights",
+            f"cmc bench synthetic --out bench/REPORT`, {source(r, SYNTHETIC_REPORT)}.",
+            "",
+            "| views | PSNR / SSIM / LPIPS-vgg | median depth error |",
+            "|---|---|---|",
+        ]
+        for kind in ("near", "halfway", "beyond"):
+            m = r["mean"][kind]
+            out.append(f"| {kind} | {triple(m)} | {m['depth_rel_error']:.4f} |")
+    return out
+
+
+def poses() -> list[str]:
+    out = [
+        "## The whole product path: trained from the poses `cmc poses` estimates",
+        "",
+        "`python bench/poses_e2e.py --data ../shared/datasets/llff/S --steps N --lpips-dir ../shared/weights",
+        "--out bench/REPORT`: the same pixels trained once with the dataset's poses and once with",
+        "the poses SfM estimates from the three training photos, the held-out views registered into the",
+        "estimated frame (`poses_e2e.md`). Target (issue 38): within 0.5 dB.",
+        "",
+        "| scene | steps | dataset poses | estimated poses | PSNR difference | registered by | report |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for scene, name in POSE_REPORTS.items():
+        r = load(name)
+        if r is None:
+            continue
+        a = r["runs"]["dataset_poses"]["dataset"]["mean"]
+        registration = r.get("registration", "structure")  # reports before the key: structure
+        b = r["runs"]["estimated_poses"][registration]["mean"]
+        row = (
+            f"| {scene} | {r['steps']} | {triple(a)} | {triple(b)} | {b['psnr'] - a['psnr']:+.2f} | "
+            f"{registration} | {source(r, name)} |"
+        )
+        out.append(row)
+    return out
+
+
+def speed() -> list[str]:
+    out = ["## Speed: one `fast` job on fern, 2-core CPU", ""]
+    r = load(PROFILE_REPORT)
+    if r is not None:
+        stages = r["stages_s"]
+        groups = {
+            "model build (plane sweeps)": [k for k in stages if k.startswith("model build")],
+            "training": [k for k in stages if k.startswith("train")],
+            "preview bake and final bake": ["preview bake", "bake"],
+            "load the baked scene, first render": ["load baked scene", "first render"],
+        }
+        out += [
+            "`python bench/profile_job.py --data ../shared/datasets/llff/fern --device cpu`,",
+            f"{source(r, PROFILE_REPORT)} (per-stage detail and the GPU column: `PROFILE.md`).",
+            "",
+            "| stage | seconds | share |",
+            "|---|---|---|",
+        ]
+        for label, keys in groups.items():
+            s = sum(stages.get(k, 0.0) for k in keys)
+            out.append(f"| {label} | {s:.1f} | {100 * s / r['total_s']:.0f} % |")
+        out.append(f"| **total** | **{r['total_s']:.1f}** | |")
+    b = load(BUILD_REPORT)
+    if b is not None:
+        med = b["median_s"]
+        out += [
+            "",
+            "The model build alone, the sweep's torch ops against its compiled kernels (`cmc/sweep_kernel.py`),",
+            f"alternating, {len(b['seconds']['torch'])} runs each (`{b['command']}`, {source(b, BUILD_REPORT)}):",
+            f"median {med['torch']:.1f} s -> {med['compiled']:.1f} s ({med['torch'] / med['compiled']:.1f}x),",
+            f"the same model to the bit: {'yes' if b['same_model_to_the_bit'] else 'NO'}.",
+        ]
+    return out
+
+
+def serving() -> list[str]:
+    r = load(RENDER_REPORT)
+    if r is None:
+        return []
+    return [
+        "## Serving: a baked fern render (504x378, 3 x 56 planes, compiled CPU renderer)",
+        "",
+        f"`{r['command']}`, {r['machine']['cpu']} {r['machine']['cores']} cores, {r['date'][:10]}, {r['git_commit']}:",
+        f"median {r['overall']['median_ms']:.0f} ms, p90 {r['overall']['p90_ms']:.0f} ms (target 150 ms, met on the",
+        "faster machine of earlier sessions at 118-148 ms); a loaded scene holds",
+        f"{r['memory']['scene_mb']:.0f} MB (target 200 MB).",
+    ]
+
+
+def main() -> None:
+    out = [
+        "# Scoreboard: the current numbers",
+        "",
+        "Generated by `python bench/scoreboard.py` from the reports named in each table. Each number is",
+        "of the `fast` preset as it is now unless its row says otherwise; how it came to be is in the pages",
+        "listed at the end.",
+        "",
+    ]
+    for section in (view_quality(), poses(), speed(), serving()):
+        if section:
+            out += [*section, ""]
+    out += ["## Where the history is", ""]
+    out += [f"- `bench/{page}`: {what}" for page, what in PAGES]
+    (HERE / "SCOREBOARD.md").write_text("\n".join(out) + "\n")
+
+
+if __name__ == "__main__":
+    main()
