@@ -1,0 +1,140 @@
+"""Ways of blending the per-view MPIs of one trained model, scored on the validation views.
+
+Blending happens only at render time, so each scene is trained once (the ``fast`` preset, baked to
+``--bakes/<scene>``, reused when there) and every blend is scored on the same bake. Each MPI's
+render of a target view also carries how much of what it shows its reference photo saw: the
+target's compositing weights over ``seen_k = T_ref,k * inside`` (``T_ref,k`` the transmittance
+from the reference camera to plane k at the same texel, ``inside`` 1 where the texel lies in the
+reference photo, 0 in the margin), rendered as a colour. A blend then weighs MPI i at a pixel by
+the renderer's per-camera weight times a function of that share. Test views are scored too, only
+to see afterwards whether validation predicted them.
+
+Usage::
+
+    PYTHONPATH=. CMC_LPIPS_DIR=../shared/weights .venv/bin/python bench/blend_explore.py \\
+        --scenes fern,room,trex --bakes /tmp/bakes --out bench/blend_explore.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from cmc.baking import MANIFEST, BakedScene, bake
+from cmc.bench import report_header
+from cmc.config import preset_config
+from cmc.datasets import load_llff
+from cmc.metrics import LPIPS, psnr, ssim
+from cmc.rendering import RayOutput, blend_selection, render_texture_image
+from cmc.training import Trainer
+
+
+def seen_maps(rgba: torch.Tensor, margin: float) -> torch.Tensor:
+    """[D, h, w]: per plane texel, the share of the reference camera's ray that reaches it
+    (transmittance through the planes in front, nearest first) where the texel lies inside the
+    reference photo, 0 in the margin. ``rgba`` [D, 4, h, w] straight alpha."""
+    alpha = rgba[:, 3]
+    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:1]), 1 - alpha[:-1]]), 0)
+    D, h, w = alpha.shape
+    gy = (torch.arange(h, dtype=torch.float32) + 0.5) / h * 2 - 1
+    gx = (torch.arange(w, dtype=torch.float32) + 0.5) / w * 2 - 1
+    inside = ((gy.abs()[:, None] <= 1 / margin) & (gx.abs()[None, :] <= 1 / margin)).float()
+    return trans * inside
+
+
+def per_mpi_renders(
+    baked: BakedScene, K: np.ndarray, pose: np.ndarray
+) -> tuple[torch.Tensor, list[RayOutput], list[torch.Tensor]]:
+    """Per-camera blend weights [N], every MPI's render of the view, and every MPI's seen share [R]
+    (the compositing weights over :func:`seen_maps`, divided by its coverage)."""
+    K_t = torch.as_tensor(K, dtype=torch.float32)
+    P_t = torch.as_tensor(pose, dtype=torch.float32)
+    weights, _ = blend_selection(baked.frames, P_t)
+    outs, seen = [], []
+    for f, frame in zip(baked.fields, baked.frames, strict=True):
+        outs.append(
+            render_texture_image(
+                f.premultiplied, frame, K_t, P_t, baked.width, baked.height, straight_rgb=f.rgba[:, :3]
+            )
+        )
+        s = seen_maps(f.rgba, frame.margin)[:, None]
+        alpha = f.premultiplied[:, 3:]
+        tex = torch.cat([s * alpha, s * alpha, s * alpha, alpha], 1)
+        o = render_texture_image(tex, frame, K_t, P_t, baked.width, baked.height)
+        seen.append(o.rgb[:, 0] / o.acc.clamp_min(1e-6))
+    return weights, outs, seen
+
+
+def blend_with(outs: list[RayOutput], weights: torch.Tensor, extra: list[torch.Tensor]) -> torch.Tensor:
+    """Colour [R, 3]: ``sum_i w_i e_i C_i / sum_i w_i e_i a_i`` times the largest coverage, with
+    per-ray factors ``e_i`` (all 1: :func:`cmc.rendering.blend`)."""
+    acc_all = torch.stack([o.acc for o in outs])
+    W = torch.stack([weights[i] * extra[i] for i in range(len(outs))])  # [N, R]
+    total = (acc_all * W).sum(0).clamp_min(1e-8)
+    rgb = sum(W[i][:, None] * o.rgb for i, o in enumerate(outs)) / total[:, None]
+    return (rgb * acc_all.max(0).values[:, None]).clamp(0, 1)
+
+
+BLENDS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
+    "renderer": lambda s: torch.ones_like(s),
+    "seen_eps0.3": lambda s: s + 0.3,
+    "seen_eps0.1": lambda s: s + 0.1,
+    "seen_eps0.03": lambda s: s + 0.03,
+    "seen_sq_eps0.03": lambda s: s * s + 0.03,
+}
+
+
+def train_or_load(scene: str, data: Path, bakes: Path) -> tuple[Any, BakedScene, float]:
+    split = load_llff(data / scene)
+    folder = bakes / scene
+    train_s = float("nan")
+    if not (folder / MANIFEST).exists():
+        t0 = time.perf_counter()
+        trainer = Trainer(split.train, preset_config("fast"), torch.device("cpu"))
+        trainer.fit()
+        train_s = time.perf_counter() - t0
+        bake(trainer.model, folder)
+    return split, BakedScene.load(folder), train_s
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--data", default="../shared/datasets/llff")
+    ap.add_argument("--scenes", default="fern,room,trex")
+    ap.add_argument("--bakes", default="/tmp/bakes")
+    ap.add_argument("--train-only", action="store_true")
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args()
+    torch.set_num_threads(2)
+    lpips = None if args.train_only else LPIPS("vgg", weights_dir=os.environ.get("CMC_LPIPS_DIR"))
+    report: dict[str, Any] = {**report_header(preset_config("fast"), torch.device("cpu")), "scenes": {}}
+    for scene in args.scenes.split(","):
+        split, baked, train_s = train_or_load(scene, Path(args.data), Path(args.bakes))
+        print(scene, "trained" if train_s == train_s else "loaded", train_s, flush=True)
+        if args.train_only:
+            continue
+        rec: dict[str, Any] = {"train_s": train_s}
+        for kind, views in (("val", split.val), ("test", split.test)):
+            scores: dict[str, list[tuple[float, float, float]]] = {b: [] for b in BLENDS}
+            for k in range(len(views.names)):
+                weights, outs, seen = per_mpi_renders(baked, views.cameras.K[k], views.cameras.world_from_cam[k])
+                gt = views.images[k]
+                for name, fn in BLENDS.items():
+                    rgb = blend_with(outs, weights, [fn(s) for s in seen]).reshape(baked.height, baked.width, 3).numpy()
+                    scores[name].append((psnr(rgb, gt), ssim(rgb, gt), lpips(rgb, gt)))
+            rec[kind] = {b: [round(float(x), 4) for x in np.mean(v, 0)] for b, v in scores.items()}
+            print(scene, kind, json.dumps(rec[kind]), flush=True)
+        report["scenes"][scene] = rec
+        Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
