@@ -7,12 +7,13 @@ PNGs of the RegNeRF training views, e.g. fern's 1, 10, 19); only the cameras dif
 (b) estimated: :func:`cmc.poses.estimate_poses` on the photos of the same three views (intrinsics,
     poses and per-view near/far at the 504x378 working resolution, arbitrary frame): the
     full-resolution photos in ``images/`` where the scene has them (fern), else the ``images_8``
-    PNGs themselves (room, trex: what a user uploading 504x378 photos gets).
+    PNGs themselves (room, trex: what a user uploading 504x378 photos gets; with ``--exif-focal``
+    they carry the dataset's focal length as the EXIF tag a phone writes, as a phone's photos do).
 
 The held-out views (0, 8, 16) have dataset poses only. Run (b) needs them in its own frame; two
 ways of aligning the two reconstructions are scored, neither looks at a held-out image:
 
-* ``structure`` (the target's number where the scene ships ``sparse/0``; else ``similarity`` is):
+* ``structure`` (the target's number where the scene ships ``sparse/0``):
   through the 3D points. The dataset ships its sparse model
   (``sparse/0``: points and its SIMPLE_RADIAL camera). Our SfM points and the dataset's points that
   the three shared photos see at the same pixels are the same scene points
@@ -22,13 +23,17 @@ ways of aligning the two reconstructions are scored, neither looks at a held-out
   corresponding points of (b) at those pixels (:func:`cmc.alignment.register_camera`, LO-RANSAC P3P +
   refinement), as SfM would register that photo into (b) with perfect matches. Control: the same
   procedure on the training views must give back (b)'s own SfM poses.
+* ``sfm`` (the target's number where the scene has no sparse model): each held-out photo is
+  registered by SfM beside the three training photos, and carried into frame (b) by the similarity
+  of the three shared cameras (:func:`register_by_sfm`), as a user uploading it would get it.
 * ``similarity``: one similarity from the three training cameras
   (:func:`cmc.alignment.similarity_from_cameras`: rotation = chordal mean of ``R_gt_i R_est_i^T``,
   scale = ratio of the RMS centre spreads, translation from the centroids), applied as a pose
   transform (centre: scaled, rotated and shifted; orientation: rotated only).
 
-Both runs render the test views with the dataset's intrinsics (scaled to 504x378), so the test
-cameras are the same pixel grid and only the pose registration differs.
+Both runs render the test views at 504x378: run (a) and the ``structure`` and ``similarity``
+registrations with the dataset's intrinsics, ``sfm`` with run (b)'s own (the photos share one
+camera, and (b)'s model is consistent with its focal length, not the dataset's).
 
 ``--refine-test-poses`` adds a diagnostic: each registered test pose of each run is refined
 photometrically against that run's frozen baked model (:func:`refine_test_pose`) and scored again,
@@ -45,16 +50,19 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import math
 import os
 import platform
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from PIL import Image
 
 from cmc.alignment import (
     apply_similarity_to_poses,
@@ -63,7 +71,7 @@ from cmc.alignment import (
     register_camera,
     similarity_from_cameras,
 )
-from cmc.baking import BakedScene, bake
+from cmc.baking import MANIFEST, BakedScene, bake
 from cmc.bench import git_commit
 from cmc.cameras import Cameras
 from cmc.config import preset_config
@@ -204,6 +212,66 @@ def register_through_structure(data: Path, split: LLFFSplit, est: PoseResult) ->
     return np.stack(poses), report
 
 
+def with_exif_focal(paths: list[Path], focal_px: float, folder: Path) -> list[Path]:
+    """Copies in ``folder`` of the PNGs among ``paths`` carrying the EXIF tag a phone writes,
+    ``FocalLengthIn35mmFilm`` (whole millimetres, so about 1 % off), for the focal length
+    ``focal_px`` at their own size; other photos (JPEGs with their own EXIF) as they are."""
+    out = []
+    for path in paths:
+        if path.suffix.lower() != ".png":
+            out.append(path)
+            continue
+        with Image.open(path) as im:
+            exif = Image.Exif()
+            exif[0xA405] = round(focal_px * 43.27 / math.hypot(*im.size))  # FocalLengthIn35mmFilm
+            folder.mkdir(parents=True, exist_ok=True)
+            im.save(folder / path.name, exif=exif)
+        out.append(folder / path.name)
+    return out
+
+
+def register_by_sfm(
+    data: Path,
+    split: LLFFSplit,
+    est: PoseResult,
+    photos: list[Path],
+    seed: int,
+    tag: Callable[[list[Path]], list[Path]] = lambda paths: paths,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Each held-out photo's camera in frame (b) as SfM gives it beside the training photos.
+
+    Where the scene has no sparse model to register through: :func:`estimate_poses` on the three
+    training photos plus one held-out photo (the ``images_8`` PNG), then the similarity that maps
+    that run's three training cameras onto (b)'s carries its held-out camera into frame (b). This
+    is what a user who uploaded a fourth photo would get. The held-out view is rendered with (b)'s
+    intrinsics (the photos share one camera). ``tag`` prepares the held-out photo as the
+    training photos were (:func:`with_exif_focal`). Returns K [T, 3, 3], poses [T, 4, 4] and a
+    record per view (the similarity's residual on the training cameras, the 4-photo run's focal).
+    """
+    files = sorted(p for p in (data / "images_8").iterdir() if p.suffix.lower() == ".png")
+    cams_b = est.camera_file.cameras
+    Ks, poses, records = [], [], []
+    for view in split.test_ids:
+        with tempfile.TemporaryDirectory() as tmp:
+            four = estimate_poses([*photos, *tag([files[view]])], Path(tmp) / "scene", seed=seed, keep_originals=False)
+        c4 = four.camera_file.cameras
+        scale, R, t = similarity_from_cameras(c4.world_from_cam[:3], cams_b.world_from_cam)
+        moved = apply_similarity_to_poses(c4.world_from_cam, scale, R, t)
+        residual = np.linalg.norm(moved[:3, :3, 3] - cams_b.centers, axis=1) / mean_baseline(cams_b.centers)
+        Ks.append(cams_b.K[0])
+        poses.append(moved[3])
+        records.append(
+            {
+                "view": view,
+                "train_centre_residual_fraction_of_baseline": residual.tolist(),
+                "focal_px_four_photos": float(c4.K[3, 0, 0]),
+                "focal_px_three_photos": float(cams_b.K[0, 0, 0]),
+            }
+        )
+        print(f"view {view}: {records[-1]}", file=sys.stderr, flush=True)
+    return np.stack(Ks), np.stack(poses), {"test_views": records}
+
+
 def _rodrigues(w: np.ndarray) -> np.ndarray:
     """Rotation matrix of the axis-angle vector ``w`` (radians)."""
     a = float(np.linalg.norm(w))
@@ -312,14 +380,23 @@ def train_and_score(
     ``<label>_refined``), a diagnostic separating registration error from reconstruction quality.
     """
     cfg = preset_config("fast", steps=steps, seed=seed)
-    print(f"[{name}] training {steps} steps, near/far {scene.near:.3f}/{scene.far:.3f}", file=sys.stderr, flush=True)
-    trainer = Trainer(scene, cfg, device)
-    t0 = time.perf_counter()
-    trainer.fit()
-    train_s = time.perf_counter() - t0
-    record: dict[str, Any] = {"train_seconds": train_s, "near": scene.near, "far": scene.far, "config": cfg.to_dict()}
+    record: dict[str, Any] = {"near": scene.near, "far": scene.far, "config": cfg.to_dict()}
     with tempfile.TemporaryDirectory() as tmp:
-        baked_dir = bake(trainer.model, (save_dir / f"{name}_baked") if save_dir else Path(tmp) / "baked")
+        baked_dir = (save_dir / f"{name}_baked") if save_dir else Path(tmp) / "baked"
+        if (baked_dir / MANIFEST).exists():  # training is deterministic: a saved bake is this run's
+            print(f"[{name}] the bake in {baked_dir} (saved by an earlier run)", file=sys.stderr, flush=True)
+            record["train_seconds"] = None
+        else:
+            print(
+                f"[{name}] training {steps} steps, near/far {scene.near:.3f}/{scene.far:.3f}",
+                file=sys.stderr,
+                flush=True,
+            )
+            trainer = Trainer(scene, cfg, device)
+            t0 = time.perf_counter()
+            trainer.fit()
+            record["train_seconds"] = time.perf_counter() - t0
+            bake(trainer.model, baked_dir)
         baked = BakedScene.load(baked_dir, device)
         score_cameras(name, baked, test_cameras, test_images, test_ids, lpips_dir, save_dir, record, refine)
     return record
@@ -369,6 +446,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--out", type=Path, default=Path("bench/poses_e2e.json"), help="JSON report")
     ap.add_argument("--save-dir", type=Path, help="also write the rendered test views and baked models here")
     ap.add_argument(
+        "--exif-focal",
+        action="store_true",
+        help="PNG photos carry the dataset's focal length as a phone's EXIF tag (35 mm equivalent), "
+        "as photos uploaded from a phone do; without it SfM has to find the focal length itself",
+    )
+    ap.add_argument(
         "--refine-test-poses",
         action="store_true",
         help="diagnostic: also score both runs after photometric refinement of the registered test poses",
@@ -381,6 +464,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     split = load_llff(args.data)
     num_views = len(split.train_ids) + len(split.test_ids) + len(split.val_ids)
     photos = training_photos(args.data, split.train_ids, num_views)
+    exif_dir = Path(tempfile.mkdtemp(prefix="poses-e2e-exif-"))
+    focal = float(split.train.cameras.K[0, 0, 0])
+    tag = (lambda paths: with_exif_focal(paths, focal, exif_dir)) if args.exif_focal else (lambda paths: paths)
+    photos = tag(photos)
 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -395,6 +482,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     test_pose_similarity = apply_similarity_to_poses(test.cameras.world_from_cam, *invert_similarity(scale, R, t))
     cams_b = {"similarity": (test.cameras.K, test_pose_similarity)}
     structure: dict[str, Any] | None = None
+    sfm: dict[str, Any] | None = None
     if (args.data / "sparse" / "0" / "points3D.bin").exists():
         test_pose_structure, structure = register_through_structure(args.data, split, est)
         for k, view in enumerate(split.test_ids):  # how far apart the two registrations put each view
@@ -405,6 +493,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             )
             print(f"view {view}: {structure['test_views'][k]}", file=sys.stderr)
         cams_b = {"structure": (test.cameras.K, test_pose_structure), **cams_b}
+    else:
+        K_sfm, test_pose_sfm, sfm = register_by_sfm(args.data, split, est, photos, args.seed, tag)
+        cams_b = {"sfm": (K_sfm, test_pose_sfm), **cams_b}
     primary = next(iter(cams_b))  # the registration the target is judged on (refined when asked)
 
     cams_a = {"dataset": (test.cameras.K, test.cameras.world_from_cam)}
@@ -433,6 +524,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "train_views": split.train_ids,
         "test_views": split.test_ids,
         "photos": [p.name for p in photos],
+        "exif_focal": args.exif_focal,
         "steps": args.steps,
         "seed": args.seed,
         "pose_estimation": {
@@ -449,6 +541,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         },
         "alignment": align,
         "structure_registration": structure,
+        "sfm_registration": sfm,
         "test_poses_in_estimated_frame": {label: poses.tolist() for label, (_, poses) in cams_b.items()},
         "runs": {"dataset_poses": run_a, "estimated_poses": run_b},
         "difference_estimated_minus_dataset": diff,
