@@ -147,6 +147,7 @@ def speed() -> list[str]:
             f"alternating, {len(b['seconds']['torch'])} runs each (`{b['command']}`, {source(b, BUILD_REPORT)}):",
             f"median {med['torch']:.1f} s -> {med['compiled']:.1f} s ({med['torch'] / med['compiled']:.1f}x),",
             f"the same model to the bit: {'yes' if b['same_model_to_the_bit'] else 'NO'}.",
+            "Compare it with the table above only where both name the same machine and commit.",
         ]
     return out
 
