@@ -1,5 +1,5 @@
 """Compiled CPU kernels of the plane sweep (:mod:`cmc.planesweep`): the census distance, the
-edge-aware window sums and the semi-global aggregation, which took about 60 % of the model build
+edge-aware window sums and the semi-global aggregation, which took about half of the model build
 on the CPU as torch ops (one pass over the whole [D, h, w] cost volume per window offset, one
 batch of small ops per texel column of a path).
 
