@@ -60,10 +60,10 @@ def per_mpi_renders(
     weights, _ = blend_selection(baked.frames, P_t)
     outs, seen = [], []
     for f, frame in zip(baked.fields, baked.frames, strict=True):
+        bicubic = f.colour_interpolation == "bicubic"  # as cmc.rendering.render_image samples colour
+        straight = f.rgba[:, :3] if bicubic else None
         outs.append(
-            render_texture_image(
-                f.premultiplied, frame, K_t, P_t, baked.width, baked.height, straight_rgb=f.rgba[:, :3]
-            )
+            render_texture_image(f.premultiplied, frame, K_t, P_t, baked.width, baked.height, straight_rgb=straight)
         )
         s = seen_maps(f.rgba, frame.margin)[:, None]
         alpha = f.premultiplied[:, 3:]

@@ -62,7 +62,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from PIL import Image
+from PIL import ExifTags, Image
 
 from cmc.alignment import (
     apply_similarity_to_poses,
@@ -77,6 +77,7 @@ from cmc.cameras import Cameras
 from cmc.config import preset_config
 from cmc.datasets import LLFFSplit, Scene, load_image, load_llff, save_image
 from cmc.geometry import mean_baseline
+from cmc.images import FULL_FRAME_DIAGONAL_MM
 from cmc.metrics import image_metrics
 from cmc.poses import PoseResult, estimate_poses, read_colmap_cameras, read_colmap_points
 from cmc.training import Trainer
@@ -223,7 +224,8 @@ def with_exif_focal(paths: list[Path], focal_px: float, folder: Path) -> list[Pa
             continue
         with Image.open(path) as im:
             exif = Image.Exif()
-            exif[0xA405] = round(focal_px * 43.27 / math.hypot(*im.size))  # FocalLengthIn35mmFilm
+            f35 = focal_px * FULL_FRAME_DIAGONAL_MM / math.hypot(*im.size)  # as cmc.images.exif_focal_px reads it
+            exif[ExifTags.Base.FocalLengthIn35mmFilm] = round(f35)
             folder.mkdir(parents=True, exist_ok=True)
             im.save(folder / path.name, exif=exif)
         out.append(folder / path.name)

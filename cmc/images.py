@@ -65,7 +65,7 @@ def accepted_formats() -> str:
 
 
 MAX_PIXELS = 120_000_000  # refuse larger images (decompression bombs); a 108 MP phone photo passes
-_FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)  # "35 mm equivalent" focal lengths refer to this
+FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)  # "35 mm equivalent" focal lengths refer to this
 _MM_PER_UNIT = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # EXIF FocalPlaneResolutionUnit: inch, cm, mm, um
 _T = ExifTags.Base
 
@@ -145,7 +145,7 @@ def exif_focal_px(exif: Image.Exif, stored_width: int, stored_height: int) -> tu
     candidates: list[tuple[float | None, str]] = []
     f35 = _positive(tags.get(_T.FocalLengthIn35mmFilm))
     if f35 is not None:
-        candidates.append((f35 * math.hypot(stored_width, stored_height) / _FULL_FRAME_DIAGONAL_MM, "35mm-equivalent"))
+        candidates.append((f35 * math.hypot(stored_width, stored_height) / FULL_FRAME_DIAGONAL_MM, "35mm-equivalent"))
     f_mm = _positive(tags.get(_T.FocalLength))
     res = _positive(tags.get(_T.FocalPlaneXResolution))
     unit = _MM_PER_UNIT.get(int(_positive(tags.get(_T.FocalPlaneResolutionUnit)) or 2))  # EXIF default: inch
