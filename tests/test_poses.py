@@ -33,6 +33,7 @@ from cmc.poses import (
     poses_from_client,
     triangulate_pair,
 )
+from cmc.poses.intake import SIFT_FULL_SIZE, sift_peak_threshold
 
 pycolmap = pytest.importorskip("pycolmap")
 
@@ -236,7 +237,8 @@ def test_sfm_recovers_known_cameras(scene, tmp_path: Path) -> None:
     s, R, t = similarity_from_cameras(est.world_from_cam, cams.world_from_cam)
     z = (s * sparse.xyz @ R.T + t)[:, 2]
     layer_z = np.array([layer.z for layer in DEFAULT_LAYERS])
-    assert np.median(np.abs(z[:, None] - layer_z).min(1) / z) < 0.01
+    # (1.5 %: these 320-pixel photos keep weaker, less precise features; cmc.poses.intake.sift_peak_threshold)
+    assert np.median(np.abs(z[:, None] - layer_z).min(1) / z) < 0.015
     # the folder is a trainable scene: images at the working size + cameras.json with near/far
     loaded = load_scene_folder(result.scene_dir)
     assert loaded.images.shape == (3, H, W, 3)
@@ -249,6 +251,13 @@ def test_sfm_recovers_known_cameras(scene, tmp_path: Path) -> None:
     assert np.allclose(-R[:, :, 1].mean(0), [0, 1, 0], atol=0.02), R[:, :, 1]
     assert np.allclose(R[:, :, 2].mean(0), [0, 0, -1], atol=0.02), R[:, :, 2]
     assert np.allclose(-cams.world_from_cam[:, :3, 1].mean(0), [0, -1, 0], atol=0.02)
+
+
+def test_sift_threshold_follows_the_photo_size() -> None:
+    """COLMAP's contrast threshold at SIFT_FULL_SIZE and above; lower in proportion on smaller
+    photos (a 504-pixel photo of a plain room keeps about 500 features at the default)."""
+    assert sift_peak_threshold(SIFT_FULL_SIZE, 0.006) == sift_peak_threshold(4032, 0.006) == 0.006
+    assert sift_peak_threshold(504, 0.006) == pytest.approx(0.006 * 504 / SIFT_FULL_SIZE)
 
 
 def test_sfm_is_deterministic_and_scales_to_the_working_size(scene, tmp_path: Path) -> None:

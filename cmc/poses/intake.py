@@ -187,6 +187,7 @@ def features_and_matches(
     reader.camera_model = SFM_CAMERA_MODEL
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = max_sift_size
+    extraction.sift.peak_threshold = sift_peak_threshold(max(photos.sfm_size), extraction.sift.peak_threshold)
     mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
     with stage(timings, "features"), cancel.running():
         pycolmap.Database.open(database).close()
@@ -229,6 +230,17 @@ def features_and_matches(
             i, j = index[a], index[b]
             pairs[(i, j) if i < j else (j, i)] = m if i < j else m[:, ::-1]
     return Matches(keypoints, pairs)
+
+
+SIFT_FULL_SIZE = 1600  # long side (pixels) COLMAP's default SIFT peak threshold suits
+
+
+def sift_peak_threshold(long_side: int, default: float) -> float:
+    """SIFT's contrast threshold for photos of ``long_side`` pixels: COLMAP's ``default`` at
+    :data:`SIFT_FULL_SIZE` and above, lowered in proportion below it. A small photo holds fewer
+    features over that threshold (a 504-pixel photo of a plain room about 500), too few for three
+    photos to share the matches structure from motion needs."""
+    return default * min(1.0, long_side / SIFT_FULL_SIZE)
 
 
 def _pair_shift(matches: Matches, i: int, j: int) -> float:
