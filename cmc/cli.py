@@ -250,16 +250,16 @@ def cmd_poses(args: argparse.Namespace) -> None:
     print(f"wrote {written} and {len(result.image_paths)} images in {images}; train with: cmc train {scene_dir}")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="cmc", description="Few-shot novel view synthesis with per-view MPIs (CMC).")
-    sub = p.add_subparsers(dest="command", required=True)
+def _train_options(sp: argparse.ArgumentParser) -> None:
+    """The options of every command that trains: preset, steps, seed, device."""
+    sp.add_argument("--preset", choices=PRESETS, default="fast", help="model/training preset (default fast)")
+    sp.add_argument("--steps", type=int, help="training steps (default: the preset's)")
+    sp.add_argument("--seed", type=int, help="random seed (default 0)")
+    sp.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default)")
 
-    def train_opts(sp: argparse.ArgumentParser) -> None:
-        sp.add_argument("--preset", choices=PRESETS, default="fast", help="model/training preset (default fast)")
-        sp.add_argument("--steps", type=int, help="training steps (default: the preset's)")
-        sp.add_argument("--seed", type=int, help="random seed (default 0)")
-        sp.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default)")
 
+def _add_train(sub: argparse._SubParsersAction) -> None:
+    """``cmc train``."""
     t = sub.add_parser("train", help="train on a scene folder (images + cameras.json), checkpoint and bake")
     t.add_argument("scene", help="scene folder with cameras.json (transforms.json shape, near/far)")
     t.add_argument("--out", required=True, help="output folder: checkpoint.pt, baked/, train.json")
@@ -271,9 +271,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=1,
         help="composite this many adjacent planes into one when baking (faster renders)",
     )
-    train_opts(t)
+    _train_options(t)
     t.set_defaults(func=cmd_train)
 
+
+def _add_render(sub: argparse._SubParsersAction) -> None:
+    """``cmc render``."""
     r = sub.add_parser(
         "render",
         help="render a baked MPI: colour and depth of every camera in a cameras file, or a camera-path video",
@@ -286,12 +289,18 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--fps", type=float, help="video frames per second (default 30)")
     r.set_defaults(func=cmd_render)
 
+
+def _add_export(sub: argparse._SubParsersAction) -> None:
+    """``cmc export``."""
     x = sub.add_parser("export", help="export a baked MPI as glTF (.glb): textured planes and the input cameras")
     x.add_argument("baked", help="baked folder (mpi.json + atlases)")
     x.add_argument("--out", required=True, help="the .glb file to write")
     x.add_argument("--mpi", type=int, help="which MPI (default: the one nearest the mean input camera)")
     x.set_defaults(func=cmd_export)
 
+
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    """``cmc bench``."""
     b = sub.add_parser("bench", help="benchmark: LLFF with the paper's protocol, or the wide-baseline synthetic scenes")
     b.add_argument("dataset", choices=["llff", "synthetic"])
     b.add_argument("--data", help="llff: folder holding the LLFF scene folders")
@@ -320,7 +329,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         help="train with every near bound times this (e.g. 0.25: bounds 4x too loose, as a stray SfM point gives)",
     )
-    train_opts(b)
+    _train_options(b)
     b.add_argument(
         "--set",
         action="append",
@@ -329,10 +338,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.set_defaults(func=cmd_bench)
 
+
+def _add_demo(sub: argparse._SubParsersAction) -> None:
+    """``cmc demo``."""
     d = sub.add_parser("demo", help="reconstruct a synthetic scene from 3 views on the CPU")
     d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
     d.add_argument("--steps", type=int, default=300, help="training steps (default 300)")
     d.set_defaults(func=cmd_demo)
+
+
+def _add_poses(sub: argparse._SubParsersAction) -> None:
+    """``cmc poses``."""
     ps = sub.add_parser(
         "poses",
         help="cameras and near/far for a few photos (pycolmap SfM, or the app's poses); writes a scene folder",
@@ -354,6 +370,13 @@ def build_parser() -> argparse.ArgumentParser:
     ps.add_argument("--work-dir", help="keep COLMAP's database and sparse model here (default: a temporary folder)")
     ps.add_argument("--verbose", action="store_true", help="show COLMAP's log")
     ps.set_defaults(func=cmd_poses)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cmc", description="Few-shot novel view synthesis with per-view MPIs (CMC).")
+    sub = p.add_subparsers(dest="command", required=True)
+    for add in (_add_train, _add_render, _add_export, _add_bench, _add_demo, _add_poses):
+        add(sub)
     _register_plugin_commands(sub)
     return p
 
