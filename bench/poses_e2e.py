@@ -74,7 +74,7 @@ from cmc.alignment import (
 from cmc.baking import MANIFEST, BakedScene, bake
 from cmc.bench import git_commit
 from cmc.cameras import Cameras
-from cmc.config import preset_config
+from cmc.config import preset_config, with_settings
 from cmc.datasets import LLFFSplit, Scene, load_image, load_llff, save_image
 from cmc.geometry import mean_baseline
 from cmc.images import FULL_FRAME_DIAGONAL_MM
@@ -375,13 +375,15 @@ def train_and_score(
     lpips_dir: str | None,
     save_dir: Path | None,
     refine: bool = False,
+    settings: tuple[str, ...] = (),
 ) -> dict[str, Any]:
-    """Train the fast preset on ``scene``, bake, render each test camera set and score it.
+    """Train the fast preset (with ``settings``, ``--set`` style) on ``scene``, bake, render each
+    test camera set and score it.
 
     With ``refine``: also score the first camera set after :func:`refine_test_pose` (label
     ``<label>_refined``), a diagnostic separating registration error from reconstruction quality.
     """
-    cfg = preset_config("fast", steps=steps, seed=seed)
+    cfg = with_settings(preset_config("fast", steps=steps, seed=seed), list(settings))
     record: dict[str, Any] = {"near": scene.near, "far": scene.far, "config": cfg.to_dict()}
     with tempfile.TemporaryDirectory() as tmp:
         baked_dir = (save_dir / f"{name}_baked") if save_dir else Path(tmp) / "baked"
@@ -458,6 +460,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         action="store_true",
         help="diagnostic: also score both runs after photometric refinement of the registered test poses",
     )
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a training setting (both runs)")
     args = ap.parse_args(argv)
     device = torch.device(args.device)
     if args.save_dir:
@@ -510,6 +513,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         lpips_dir=args.lpips_dir,
         save_dir=args.save_dir,
         refine=args.refine_test_poses,
+        settings=tuple(args.set),
     )
     run_a = train_and_score("dataset_poses", scene_a, test_cameras=cams_a, **common)
     run_b = train_and_score("estimated_poses", scene_b, test_cameras=cams_b, **common)
@@ -528,6 +532,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "photos": [p.name for p in photos],
         "exif_focal": args.exif_focal,
         "steps": args.steps,
+        "settings": args.set,
         "seed": args.seed,
         "pose_estimation": {
             "wall_seconds": pose_wall_s,
