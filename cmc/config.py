@@ -70,9 +70,6 @@ class TrainConfig:
     unseen_jitter: float = 0.1  # std of the unseen-pose centre jitter, in mean baselines
     lr: float = 0.05  # Adam learning rate at step 0 ...
     lr_final: float = 0.005  # ... decaying exponentially to this at the last step
-    # Adam learning rate at step 0 of the input cameras' pose corrections (radians, and mean
-    # baselines for the centres), decaying as ``lr`` does; 0 keeps the input poses as given.
-    pose_lr: float = 0.0
     seed: int = 0
     checkpoint_every: int = 250  # steps between checkpoints (when a checkpoint path is given)
     model: ModelConfig = field(default_factory=ModelConfig)

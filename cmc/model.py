@@ -13,7 +13,7 @@ from cmc.config import ModelConfig
 from cmc.datasets import Scene
 from cmc.errors import ConfigError
 from cmc.fields import MLPField, MPIField, PyramidFieldConfig, PyramidPlaneField, plane_group_bounds
-from cmc.geometry import content_plane_depths, mean_baseline, occupied_depth_range, texel_grid
+from cmc.geometry import content_plane_depths, occupied_depth_range, texel_grid
 from cmc.planesweep import affordable_supersample, alpha_from_weights, plane_sweep_weights
 from cmc.rendering import ImageOutput, MPIFrame, render_image
 
@@ -145,23 +145,6 @@ class MeanResponseField(MPIField):
         return self.exposure.convert(rgb, self.view, None).clamp(0, 1), alpha
 
 
-def pose_exp(correction: torch.Tensor, baseline: float) -> torch.Tensor:
-    """[N, 4, 4] rigid transforms (camera axes) of ``correction`` [N, 6]: a rotation vector
-    (radians) and a translation in units of ``baseline``, through the exponential map of se(3)."""
-    w, v = correction[:, :3], correction[:, 3:] * baseline
-    zero = torch.zeros_like(w[:, 0])
-    twist = torch.stack(
-        [
-            torch.stack([zero, -w[:, 2], w[:, 1], v[:, 0]], -1),
-            torch.stack([w[:, 2], zero, -w[:, 0], v[:, 1]], -1),
-            torch.stack([-w[:, 1], w[:, 0], zero, v[:, 2]], -1),
-            torch.zeros_like(correction[:, :4]),
-        ],
-        1,
-    )
-    return torch.linalg.matrix_exp(twist)
-
-
 # A fitted depth range replaces the scene's bounds when its disparity span is below this share of
 # theirs (one more plane sweep; the planes would otherwise move by under a tenth of a spacing).
 FIT_WORTH = 0.9
@@ -179,7 +162,7 @@ class CMCModel(nn.Module):
             ``fit_depth_range`` the part of them where the plane sweep finds the scene.
     """
 
-    def __init__(self, scene: Scene, cfg: ModelConfig, device: torch.device | str = "cpu", refine_poses: bool = False):
+    def __init__(self, scene: Scene, cfg: ModelConfig, device: torch.device | str = "cpu"):
         super().__init__()
         # A preset's base colour groups may outnumber the planes of a model set smaller by hand
         # (``model.num_planes=4`` under ``fast``'s 8 groups): then one base per plane.
@@ -208,26 +191,26 @@ class CMCModel(nn.Module):
                 for i in range(len(scene))
             ]
 
-        self._frames = frames()
+        self.frames = frames()
         if not 0 < cfg.plane_density_floor <= 1:
             raise ConfigError(f"model.plane_density_floor must be in (0, 1], got {cfg.plane_density_floor}")
         if cfg.plane_density_floor < 1:
-            density, surfaces = sweep_statistics(self._frames, images, cfg)
+            density, surfaces = sweep_statistics(self.frames, images, cfg)
             if cfg.fit_depth_range:
                 near, far = occupied_depth_range(self.near, self.far, surfaces)
                 if 1 / near - 1 / far < FIT_WORTH * (1 / self.near - 1 / self.far):  # else the planes barely move
                     self.near, self.far = near, far
-                    self._frames = frames()
-                    density, _ = sweep_statistics(self._frames, images, cfg)
-            self._frames = frames(content_plane_depths(self.near, self.far, density, cfg.plane_density_floor))
+                    self.frames = frames()
+                    density, _ = sweep_statistics(self.frames, images, cfg)
+            self.frames = frames(content_plane_depths(self.near, self.far, density, cfg.plane_density_floor))
         fields: list[MPIField] = []
-        for i, fr in enumerate(self._frames):
+        for i, fr in enumerate(self.frames):
             if cfg.field_type == "mlp":
                 fields.append(MLPField(cfg.num_planes, cfg.mlp))
             elif cfg.field_type == "pyramid":
                 init_alpha, rgb = None, padded_reference(scene.images[i], fr)
                 if cfg.pyramid.stereo_init:
-                    probs = sweep_probabilities(self._frames, images, i, cfg.pyramid)
+                    probs = sweep_probabilities(self.frames, images, i, cfg.pyramid)
                     init_alpha = alpha_from_weights(probs)
                     if cfg.pyramid.stereo_hidden_colour_everywhere:
                         rgb = hidden_layer_colours(rgb, probs.argmax(0), cfg.num_planes, cfg.pyramid.base_groups)
@@ -236,35 +219,6 @@ class CMCModel(nn.Module):
                 raise ValueError(f"unknown field type {cfg.field_type!r}")
         self.fields = nn.ModuleList(fields).to(device)
         self.exposure = ExposureResponse(len(scene)).to(device) if cfg.exposure_compensation else None
-        # Pose corrections of the input cameras (rotation vector in radians, then the centre's
-        # shift in the camera's axes in mean baselines); view 0's stays zero and fixes the frame.
-        self.pose_correction = nn.Parameter(torch.zeros(len(scene), 6, device=device)) if refine_poses else None
-        self.baseline = mean_baseline(cams.centers) if len(scene) > 1 else 1.0
-
-    @property
-    def frames(self) -> list[MPIFrame]:
-        """The MPIs' frames, each with its input camera's pose as refined so far (detached)."""
-        with torch.no_grad():
-            return self.posed_frames()
-
-    def posed_frames(self) -> list[MPIFrame]:
-        """The MPIs' frames with the refined input poses (:meth:`input_poses`, differentiable)."""
-        if self.pose_correction is None:
-            return self._frames
-        return [replace(f, world_from_ref=p) for f, p in zip(self._frames, self.input_poses(), strict=True)]
-
-    def input_poses(self) -> torch.Tensor:
-        """[N, 4, 4] camera-to-world of the input views: as given, times the learned corrections
-        (differentiable in them; the given poses where poses are not refined)."""
-        given = torch.stack([f.world_from_ref for f in self._frames])
-        if self.pose_correction is None:
-            return given
-        return given @ pose_exp(self.pose_correction * self._correction_mask(), self.baseline)
-
-    def _correction_mask(self) -> torch.Tensor:
-        mask = torch.ones_like(self.pose_correction)
-        mask[0] = 0
-        return mask
 
     def render(
         self,

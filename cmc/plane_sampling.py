@@ -189,66 +189,6 @@ def _backward_cubic(grad_out, grid, plane_texture, grad_tex, p0, p1):
                                 grad_tex[t, c, y, x] += wx[b] * ga
 
 
-@numba.njit(**_JIT)
-def cubic_weight_slopes(t):
-    """d/dt of :func:`cubic_weights` (the same four taps)."""
-    a = np.float32(CUBIC_A)
-    u, v = t + np.float32(1), np.float32(1) - t
-    d0 = (np.float32(3) * a * u - np.float32(10) * a) * u + np.float32(8) * a
-    d1 = (np.float32(3) * (a + np.float32(2)) * t - np.float32(2) * (a + np.float32(3))) * t
-    d2 = -(np.float32(3) * (a + np.float32(2)) * v - np.float32(2) * (a + np.float32(3))) * v
-    return (d0, d1, d2, -d0 - d1 - d2)
-
-
-@numba.njit(**_JIT)
-def _grid_grad(grad_out, tex, grid, plane_texture, grad_grid, p0, p1, cubic):
-    """grad_grid[k, r] += d(sum_c grad_out[k, c, r] * sample[k, c, r]) / d grid[k, r], for the
-    bilinear (or bicubic) samples of :func:`_forward` (:func:`_forward_cubic`), k in [p0, p1)."""
-    C, H, W = tex.shape[1], tex.shape[2], tex.shape[3]
-    sx, sy = np.float32(0.5) * np.float32(W), np.float32(0.5) * np.float32(H)  # texels per grid unit
-    n = 4 if cubic else 2
-    wx, wy, dx, dy = np.zeros(4, np.float32), np.zeros(4, np.float32), np.zeros(4, np.float32), np.zeros(4, np.float32)
-    for k in range(p0, p1):
-        t = plane_texture[k]
-        for r in range(grid.shape[1]):
-            ix, iy = _texel_coord(grid[k, r, 0], W), _texel_coord(grid[k, r, 1], H)
-            fx, fy = np.floor(ix), np.floor(iy)
-            ax, ay = ix - fx, iy - fy
-            if cubic:
-                x0, y0 = np.int64(fx) - 1, np.int64(fy) - 1
-                wx[0], wx[1], wx[2], wx[3] = cubic_weights(ax)
-                wy[0], wy[1], wy[2], wy[3] = cubic_weights(ay)
-                dx[0], dx[1], dx[2], dx[3] = cubic_weight_slopes(ax)
-                dy[0], dy[1], dy[2], dy[3] = cubic_weight_slopes(ay)
-            else:
-                x0, y0 = np.int64(fx), np.int64(fy)
-                wx[0], wx[1], wy[0], wy[1] = np.float32(1) - ax, ax, np.float32(1) - ay, ay
-                dx[0], dx[1], dy[0], dy[1] = np.float32(-1), np.float32(1), np.float32(-1), np.float32(1)
-            gx, gy = np.float32(0), np.float32(0)
-            for c in range(C):
-                g = grad_out[k, c, r]
-                for a in range(n):
-                    y = y0 + a
-                    if 0 <= y < H:
-                        row, drow = np.float32(0), np.float32(0)
-                        for b in range(n):
-                            x = x0 + b
-                            if 0 <= x < W:
-                                v = tex[t, c, y, x]
-                                row += wx[b] * v
-                                drow += dx[b] * v
-                        gx += g * wy[a] * drow
-                        gy += g * dy[a] * row
-            grad_grid[k, r, 0] += gx * sx
-            grad_grid[k, r, 1] += gy * sy
-
-
-@numba.njit(parallel=True, **_JIT)
-def _grid_grad_parallel(grad_out, tex, grid, plane_texture, grad_grid, cuts, cubic):
-    for i in numba.prange(len(cuts) - 1):
-        _grid_grad(grad_out, tex, grid, plane_texture, grad_grid, cuts[i], cuts[i + 1], cubic)
-
-
 @numba.njit(parallel=True, **_JIT)
 def _forward_parallel(tex, grid, plane_texture, out, cuts, cubic):
     for i in numba.prange(len(cuts) - 1):
@@ -280,23 +220,15 @@ class _SamplePlanes(torch.autograd.Function):
         with kernel_cache.PARALLEL_LAUNCH:
             for tex in textures:
                 _forward_parallel(tex.detach().numpy(), g, plane_texture, out.numpy(), chunks, cubic)
-        ctx.save_for_backward(grid, *(textures if ctx.needs_input_grad[0] else ()))
+        ctx.save_for_backward(grid)
         ctx.plane_texture, ctx.chunks, ctx.cubic = plane_texture, chunks, cubic
         ctx.shapes = [t.shape for t in textures]
         return out
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
-        grid, *textures = ctx.saved_tensors
+        (grid,) = ctx.saved_tensors
         go, g = grad_out.contiguous().numpy(), grid.numpy()
-        grad_grid = None
-        if ctx.needs_input_grad[0]:
-            grad_grid = torch.zeros_like(grid)
-            with kernel_cache.PARALLEL_LAUNCH:
-                for tex in textures:
-                    _grid_grad_parallel(
-                        go, tex.detach().numpy(), g, ctx.plane_texture, grad_grid.numpy(), ctx.chunks, ctx.cubic
-                    )
         grads = []
         for shape, needed in zip(ctx.shapes, ctx.needs_input_grad[3:], strict=True):
             gt = None
@@ -306,12 +238,13 @@ class _SamplePlanes(torch.autograd.Function):
                     _backward_parallel(go, g, ctx.plane_texture, gt.numpy(), ctx.chunks, ctx.cubic)
                 gt[np.setdiff1d(np.arange(shape[0]), ctx.plane_texture)] = 0  # and those none reads
             grads.append(gt)
-        return (grad_grid, None, None, *grads)
+        return (None, None, None, *grads)
 
 
 def supported(grid: torch.Tensor, textures: Sequence[torch.Tensor]) -> bool:
-    """Whether :func:`sample_planes` can take these: float32 on the CPU."""
-    return all(t.device.type == "cpu" and t.dtype == torch.float32 for t in (grid, *textures))
+    """Whether :func:`sample_planes` can take these: float32 on the CPU, no gradient to the grid."""
+    tensors = (grid, *textures)
+    return not grid.requires_grad and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
 
 
 def sample_planes(
@@ -323,12 +256,11 @@ def sample_planes(
     coordinates, ``align_corners=False``, zero outside).
 
     Shape: grid [D, R, 2]; textures [T_i, C, H_i, W_i] (same C, any sizes), the planes of one
-    texture contiguous -> [D, C, R]. Differentiable in the textures and the grid (the sample
-    positions: what refines camera poses); only where :func:`supported` (the GPU keeps
-    ``grid_sample``).
+    texture contiguous -> [D, C, R]. Differentiable in the textures, not in the grid; only where
+    :func:`supported` (the GPU keeps ``grid_sample``).
     """
     if not supported(grid, textures):
-        raise ValueError("sample_planes takes float32 CPU tensors")
+        raise ValueError("sample_planes takes float32 CPU tensors and a grid without gradient")
     check_interpolation(mode, "mode")
     pt = np.asarray(plane_texture, np.int64)
     return _SamplePlanes.apply(grid.contiguous(), pt, mode == "bicubic", *textures)
@@ -339,4 +271,4 @@ def warm_up() -> None:
     training step of a fresh process does not pay the compile; the Dockerfiles call it."""
     tex = torch.zeros(2, 4, 3, 3, requires_grad=True)
     for mode in INTERPOLATIONS:
-        sample_planes(torch.zeros(2, 5, 2, requires_grad=True), [0, 1], [tex], mode).sum().backward()
+        sample_planes(torch.zeros(2, 5, 2), [0, 1], [tex], mode).sum().backward()

@@ -163,9 +163,8 @@ def render_ray_groups(
         insides.append(in_front & (g.abs() <= 1).all(-1))
         gs.append(g.clamp(-1.5, 1.5))
         # Ray directions in the reference frame, and the target depth of every plane crossing:
-        # the point o + lam * d_ref (d_ref has target z = 1) lies on plane z_ref = depth. Refined
-        # poses learn from where the planes are sampled (g) alone, not from these.
-        ref_from_tgt = (frame.ref_from_world @ world_from_tgt).detach()
+        # the point o + lam * d_ref (d_ref has target z = 1) lies on plane z_ref = depth.
+        ref_from_tgt = frame.ref_from_world @ world_from_tgt
         d_tgt = pixel_rays(K_tgt, uv)
         d_ref = d_tgt @ ref_from_tgt[:3, :3].T
         lams.append((frame.depths[None] - ref_from_tgt[2, 3]) / d_ref[:, 2:3])  # [R, D]

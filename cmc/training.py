@@ -138,15 +138,11 @@ class Trainer:
         self.scene, self.cfg = scene, cfg
         self.device = torch.device(device)
         torch.manual_seed(cfg.seed)
-        self.model = CMCModel(scene, cfg.model, self.device, refine_poses=cfg.pose_lr > 0)
-        poses = [p for n, p in self.model.named_parameters() if n == "pose_correction"]
-        rest = [p for n, p in self.model.named_parameters() if n != "pose_correction"]
-        groups = [{"params": rest, "lr_scale": 1.0}]
-        if poses:
-            groups.append({"params": poses, "lr_scale": cfg.pose_lr / cfg.lr})
-        self.optimizer = torch.optim.Adam(groups, lr=cfg.lr, fused=True)
+        self.model = CMCModel(scene, cfg.model, self.device)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, fused=True)
         self.images = torch.as_tensor(scene.images, device=self.device).reshape(len(scene), -1, 3)
         self.K = torch.as_tensor(scene.cameras.K, dtype=torch.float32, device=self.device)
+        self.poses = torch.as_tensor(scene.cameras.world_from_cam, dtype=torch.float32, device=self.device)
         self.depth_scale = self.model.far - self.model.near
         self.step = 0
 
@@ -173,14 +169,13 @@ class Trainer:
         cfg, lc = self.cfg, self.cfg.loss
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
         rng = np.random.default_rng([cfg.seed, step])
-        fields, frames = list(self.model.fields), self.model.posed_frames()
-        poses = self.model.input_poses()
+        fields, frames = list(self.model.fields), self.model.frames
         full = step >= lc.recon_only_fraction * cfg.steps
         # Target cameras of this step: every input view, then the unseen poses.
         groups, targets = [], []
         for j in range(len(self.scene)):
             idx, uv = self._random_pixels(gen, cfg.rays_per_view)
-            groups.append((self.K[j], poses[j], uv))
+            groups.append((self.K[j], self.poses[j], uv))
             targets.append(self.images[j][idx])
         use_unseen = full and (lc.lambda_ac > 0 or lc.lambda_dc > 0)
         for _ in range(cfg.unseen_poses if use_unseen else 0):
@@ -225,7 +220,7 @@ class Trainer:
 
     def train_step(self) -> dict[str, float]:
         for g in self.optimizer.param_groups:
-            g["lr"] = lr_at(self.cfg, self.step) * g["lr_scale"]
+            g["lr"] = lr_at(self.cfg, self.step)
         self.optimizer.zero_grad(set_to_none=True)
         losses = self.compute_losses(self.step)
         if not torch.isfinite(losses.total):
@@ -328,6 +323,6 @@ def load_model(checkpoint_path: str | Path, scene: Scene, device: str | torch.de
     """Rebuild a trained model from a checkpoint and the scene it was trained on."""
     ckpt = torch.load(checkpoint_path, map_location=device, weights_only=False)
     cfg = TrainConfig.from_dict(ckpt["config"])
-    model = CMCModel(scene, cfg.model, device, refine_poses=cfg.pose_lr > 0)
+    model = CMCModel(scene, cfg.model, device)
     model.load_state_dict(ckpt["model"])
     return model
