@@ -129,14 +129,57 @@ def export_glb(baked: str | Path, mpi: int | None = None, camera_names: list[str
         raise ConfigError(f"{len(names)} camera names for {len(entries)} cameras")
     W, H, near, far = int(manifest["width"]), int(manifest["height"]), float(manifest["near"]), float(manifest["far"])
     e = entries[index]
-    K, pose = np.array(e["K"], dtype=np.float64), np.array(e["world_from_cam"], dtype=np.float64)
-    (h, w), (rows, cols), depths = e["tile"], e["grid"], e["depths"]
-    with Image.open(folder / Path(e["atlas"]).name) as im:
+    atlas = _read_atlas(folder, e)
+    out = _Bin()
+    accessors, images, textures, materials, primitives = _plane_meshes(out, atlas, e, W, H)
+    cameras, camera_nodes = _cameras(entries, names, W, H, near, far)
+    nodes = [
+        {"name": "cmc-scene", "matrix": _column_major(scene_root(manifest)), "children": [*range(1, len(entries) + 2)]},
+        {"name": f"mpi_{index:02d}", "mesh": 0},
+        *camera_nodes,
+    ]
+    doc = {
+        "asset": {"version": "2.0", "generator": "cmc (cmc.gltf)"},
+        "extensionsUsed": ["KHR_materials_unlit"],
+        "scene": 0,
+        "scenes": [
+            {
+                "name": "cmc",
+                "nodes": [0],
+                "extras": {"mpi": index, "near": near, "far": far, "width": W, "height": H},
+            }
+        ],
+        "nodes": nodes,
+        "meshes": [{"name": f"mpi_{index:02d}", "primitives": primitives}],
+        "cameras": cameras,
+        "materials": materials,
+        "textures": textures,
+        "samplers": [{"magFilter": LINEAR, "minFilter": LINEAR, "wrapS": CLAMP_TO_EDGE, "wrapT": CLAMP_TO_EDGE}],
+        "images": images,
+        "accessors": accessors,
+        "bufferViews": out.views,
+        "buffers": [{"byteLength": len(out.data) + (-len(out.data) % 4)}],
+    }
+    return _glb(doc, bytes(out.data)), index
+
+
+def _read_atlas(folder: Path, entry: dict) -> np.ndarray:
+    """[rows * h, cols * w, 4] uint8 RGBA atlas of one MPI entry of a manifest, size checked."""
+    from cmc.baking import BakedFormatError
+
+    (h, w), (rows, cols) = entry["tile"], entry["grid"]
+    with Image.open(folder / Path(entry["atlas"]).name) as im:
         atlas = np.asarray(im.convert("RGBA"))
     if atlas.shape[:2] != (rows * h, cols * w):
-        raise BakedFormatError(f"{e['atlas']} is {atlas.shape[1]}x{atlas.shape[0]}, expected {cols * w}x{rows * h}")
+        raise BakedFormatError(f"{entry['atlas']} is {atlas.shape[1]}x{atlas.shape[0]}, expected {cols * w}x{rows * h}")
+    return atlas
 
-    out = _Bin()
+
+def _plane_meshes(out: _Bin, atlas: np.ndarray, e: dict, W: int, H: int) -> tuple[list, list, list, list, list]:
+    """glTF accessors, images, textures, materials and primitives of the planes of MPI entry
+    ``e``, far to near (back to front), their data appended to ``out``."""
+    K, pose = np.array(e["K"], dtype=np.float64), np.array(e["world_from_cam"], dtype=np.float64)
+    (h, w), (_, cols), depths = e["tile"], e["grid"], e["depths"]
     uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float32)  # glTF UV: origin top-left
     faces = np.array([0, 3, 2, 0, 2, 1], dtype=np.uint16)  # counter-clockwise seen from the camera
     accessors = [
@@ -182,39 +225,17 @@ def export_glb(baked: str | Path, mpi: int | None = None, camera_names: list[str
              "material": len(materials) - 1, "mode": 4}
         )  # fmt: skip
 
+    return accessors, images, textures, materials, primitives
+
+
+def _cameras(entries: list[dict], names: list[str], W: int, H: int, near: float, far: float) -> tuple[list, list]:
+    """glTF cameras and their nodes (OpenGL axes) of every input camera."""
     cameras, camera_nodes = [], []
     for i, entry in enumerate(entries):
         cameras.append({**gltf_camera(np.array(entry["K"]), W, H, near, far), "name": names[i]})
         gl_pose = convert_pose(np.array(entry["world_from_cam"], dtype=np.float64), "opencv", "opengl")
         camera_nodes.append({"name": names[i], "camera": i, "matrix": _column_major(gl_pose)})
-    nodes = [
-        {"name": "cmc-scene", "matrix": _column_major(scene_root(manifest)), "children": [*range(1, len(entries) + 2)]},
-        {"name": f"mpi_{index:02d}", "mesh": 0},
-        *camera_nodes,
-    ]
-    doc = {
-        "asset": {"version": "2.0", "generator": "cmc (cmc.gltf)"},
-        "extensionsUsed": ["KHR_materials_unlit"],
-        "scene": 0,
-        "scenes": [
-            {
-                "name": "cmc",
-                "nodes": [0],
-                "extras": {"mpi": index, "near": near, "far": far, "width": W, "height": H},
-            }
-        ],
-        "nodes": nodes,
-        "meshes": [{"name": f"mpi_{index:02d}", "primitives": primitives}],
-        "cameras": cameras,
-        "materials": materials,
-        "textures": textures,
-        "samplers": [{"magFilter": LINEAR, "minFilter": LINEAR, "wrapS": CLAMP_TO_EDGE, "wrapT": CLAMP_TO_EDGE}],
-        "images": images,
-        "accessors": accessors,
-        "bufferViews": out.views,
-        "buffers": [{"byteLength": len(out.data) + (-len(out.data) % 4)}],
-    }
-    return _glb(doc, bytes(out.data)), index
+    return cameras, camera_nodes
 
 
 def _glb(doc: dict, binary: bytes) -> bytes:
