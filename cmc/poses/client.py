@@ -12,7 +12,15 @@ from typing import Any
 
 import numpy as np
 
-from cmc.cameras import CameraError, Cameras, PoseConvention, camera_file_from_dict, load_camera_file, match_frames
+from cmc.cameras import (
+    CameraError,
+    CameraFile,
+    Cameras,
+    PoseConvention,
+    camera_file_from_dict,
+    load_camera_file,
+    match_frames,
+)
 from cmc.errors import PoseEstimationError
 from cmc.poses.bounds import near_far_by_triangulation
 from cmc.poses.colmap import Cancel, import_pycolmap, quiet
@@ -60,12 +68,7 @@ def poses_from_client(
     opt = (options or PoseOptions()).updated(**changes)
     t_start = time.perf_counter()
     timings = Timings(on_stage)
-    if isinstance(cameras, dict):
-        data_convention = cameras.get("convention", "opengl")
-        client = camera_file_from_dict(cameras)
-    else:
-        client = load_camera_file(cameras)
-        data_convention = json.loads(Path(cameras).read_text()).get("convention", "opengl")
+    client, data_convention = _read_client_cameras(cameras)
     out_convention: PoseConvention = opt.convention or data_convention
     need_depths = client.near_far is None
     if need_depths and len(image_paths) < 2:
@@ -89,25 +92,7 @@ def poses_from_client(
             assert client.near_far is not None
             near_far = client.near_far[order]
         else:
-            with quiet(pycolmap, opt.verbose):
-                pycolmap.set_random_seed(opt.seed)
-                matches = features_and_matches(
-                    pycolmap,
-                    photos,
-                    work / "database.db",
-                    opt.max_sift_size,
-                    opt.seed,
-                    cancel,
-                    timings,
-                    single_camera=False,
-                    use_priors=False,
-                )
-            with stage(timings, "triangulation"):
-                sfm_cams = client_cams.scaled(*photos.sfm_size)
-                max_error = 0.01 * max(photos.sfm_size)  # loose: phone poses are off by a few pixels
-                near_far, tri_stats = near_far_by_triangulation(
-                    sfm_cams, matches, photos, max_error_px=max_error, min_angle_deg=1.0
-                )
+            near_far, tri_stats = _near_far_from_matches(pycolmap, photos, client_cams, work, opt, cancel, timings)
             stats.update(tri_stats)
         return finish(
             photos,
@@ -119,6 +104,43 @@ def poses_from_client(
             stats,
             t_start,
         )
+
+
+def _read_client_cameras(cameras: str | Path | dict) -> tuple[CameraFile, PoseConvention]:
+    """The app's cameras file (a path or its parsed dict) and the convention it is written in."""
+    if isinstance(cameras, dict):
+        return camera_file_from_dict(cameras), cameras.get("convention", "opengl")
+    return load_camera_file(cameras), json.loads(Path(cameras).read_text()).get("convention", "opengl")
+
+
+def _near_far_from_matches(
+    pycolmap: Any,
+    photos: Photos,
+    client_cams: Cameras,
+    work: Path,
+    opt: PoseOptions,
+    cancel: Cancel,
+    timings: Timings,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Near/far [N, 2] of each photo from SIFT matches triangulated with the app's cameras, and
+    the triangulation's statistics (stages 'features', 'matching', 'triangulation')."""
+    with quiet(pycolmap, opt.verbose):
+        pycolmap.set_random_seed(opt.seed)
+        matches = features_and_matches(
+            pycolmap,
+            photos,
+            work / "database.db",
+            opt.max_sift_size,
+            opt.seed,
+            cancel,
+            timings,
+            single_camera=False,
+            use_priors=False,
+        )
+    with stage(timings, "triangulation"):
+        sfm_cams = client_cams.scaled(*photos.sfm_size)
+        max_error = 0.01 * max(photos.sfm_size)  # loose: phone poses are off by a few pixels
+        return near_far_by_triangulation(sfm_cams, matches, photos, max_error_px=max_error, min_angle_deg=1.0)
 
 
 def _check_client_sizes(cameras: Cameras, photos: Photos) -> None:
