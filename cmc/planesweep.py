@@ -10,6 +10,8 @@ plausible geometry instead of discovering one from uniform fog.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -33,6 +35,52 @@ def sample_image(image: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, t
 
 
 @torch.no_grad()
+def _view_cost(
+    fr: Any,
+    other: Any,
+    image: torch.Tensor,
+    ref_rgb: torch.Tensor,
+    ref_grid: torch.Tensor,
+    p: torch.Tensor,
+    aggregate: Callable[[torch.Tensor], torch.Tensor],
+    cost: str,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The window-averaged matching cost [D, h, w] of the reference MPI ``fr``'s planes against
+    one other view (``other``'s frame, its photo ``image`` [3, H, W]), and where that view sees
+    them ([D, h, w] bool). ``ref_rgb`` [T, 3] and ``ref_grid`` [3, h, w]: the reference colour
+    at the texels, whose homogeneous reference pixels are ``p`` [T, 3]."""
+    D, (height, width) = fr.depths.shape[0], ref_grid.shape[1:]
+    # Homographies taking view-j pixels to reference pixels for the reference planes; invert.
+    H_ref_from_j = homographies_ref_from_tgt(fr.K, fr.ref_from_world, other.K, other.world_from_ref, fr.depths)
+    q = torch.einsum("dij,tj->dti", torch.linalg.inv(H_ref_from_j), p)
+    uv_j = q[..., :2] / q[..., 2:3].clamp_min(1e-6)
+    rgb_j, inside = sample_image(image, uv_j)  # [D, T, 3]
+    inside = (inside & (q[..., 2] > 0)).float().reshape(D, 1, height, width)
+    diff = (rgb_j - ref_rgb).abs().mean(-1).reshape(D, 1, height, width)
+    if cost == "ad_census":
+        warped = rgb_j.reshape(D, height, width, 3).permute(0, 3, 1, 2)
+        census = census_distance(ref_grid, warped)
+        diff = (1 - torch.exp(-diff / AD_SCALE)) + (1 - torch.exp(-census[:, None] / CENSUS_SCALE))
+    diff = diff * inside
+    # Window-averaged cost over the texels this view sees (sum of costs / weight seen).
+    frac = aggregate(inside[:, 0])
+    return aggregate(diff[:, 0]) / frac.clamp_min(1e-6), frac > 0
+
+
+def _combined_cost(cost: torch.Tensor, seen: torch.Tensor, occlusion_aware: bool, kind: str) -> torch.Tensor:
+    """The other views' costs [V, D, h, w] as one [D, h, w]: their mean over the views that see
+    a texel, or with ``occlusion_aware`` the lowest; ``seen`` [V, D, h, w] bool; ``kind`` the
+    cost ("ad" or "ad_census")."""
+    if occlusion_aware:
+        c = torch.where(seen, cost, torch.full_like(cost, float("inf"))).amin(0)
+    else:
+        c = (cost * seen).sum(0) / seen.sum(0).clamp_min(1)
+    # A plane no other view sees costs what a random match would: colour difference 0.5, and
+    # half the census bits.
+    flat = 0.5 if kind == "ad" else 2 - math.exp(-0.5 / AD_SCALE) - math.exp(-0.5 / CENSUS_SCALE)
+    return torch.where(seen.any(0), c, torch.full_like(c, flat))
+
+
 def plane_sweep_weights(
     frames: list,
     images: torch.Tensor,
@@ -108,7 +156,6 @@ def plane_sweep_weights(
     fr = frames[ref]
     uv_ref = texel_pixels(fr, height, width)  # [T, 2]
     ref_rgb, _ = sample_image(images[ref], uv_ref)
-    D = fr.depths.shape[0]
     if cost not in ("ad", "ad_census"):
         raise ValueError(f"unknown plane-sweep cost {cost!r}; choose 'ad' or 'ad_census'")
     ref_grid = ref_rgb.T.reshape(3, height, width)
@@ -116,33 +163,11 @@ def plane_sweep_weights(
     aggregate = _window_mean(ref_grid, window, edge_sigma)
     costs, seen = [], []
     for j, other in enumerate(frames):
-        if j == ref:
-            continue
-        # Homographies taking view-j pixels to reference pixels for the reference planes; invert.
-        H_ref_from_j = homographies_ref_from_tgt(fr.K, fr.ref_from_world, other.K, other.world_from_ref, fr.depths)
-        q = torch.einsum("dij,tj->dti", torch.linalg.inv(H_ref_from_j), p)
-        uv_j = q[..., :2] / q[..., 2:3].clamp_min(1e-6)
-        rgb_j, inside = sample_image(images[j], uv_j)  # [D, T, 3]
-        inside = (inside & (q[..., 2] > 0)).float().reshape(D, 1, height, width)
-        diff = (rgb_j - ref_rgb).abs().mean(-1).reshape(D, 1, height, width)
-        if cost == "ad_census":
-            warped = rgb_j.reshape(D, height, width, 3).permute(0, 3, 1, 2)
-            census = census_distance(ref_grid, warped)
-            diff = (1 - torch.exp(-diff / AD_SCALE)) + (1 - torch.exp(-census[:, None] / CENSUS_SCALE))
-        diff = diff * inside
-        # Window-averaged cost over the texels this view sees (sum of costs / weight seen).
-        frac = aggregate(inside[:, 0])
-        costs.append(aggregate(diff[:, 0]) / frac.clamp_min(1e-6))
-        seen.append(frac > 0)
-    cost, seen_t = torch.stack(costs), torch.stack(seen)  # [V, D, h, w]
-    if occlusion_aware:
-        c = torch.where(seen_t, cost, torch.full_like(cost, float("inf"))).amin(0)
-    else:
-        c = (cost * seen_t).sum(0) / seen_t.sum(0).clamp_min(1)
-    # A plane no other view sees costs what a random match would: colour difference 0.5, and
-    # half the census bits.
-    flat = 0.5 if cost == "ad" else 2 - math.exp(-0.5 / AD_SCALE) - math.exp(-0.5 / CENSUS_SCALE)
-    c = torch.where(seen_t.any(0), c, torch.full_like(c, flat))
+        if j != ref:
+            view_cost, view_seen = _view_cost(fr, other, images[j], ref_rgb, ref_grid, p, aggregate, cost)
+            costs.append(view_cost)
+            seen.append(view_seen)
+    c = _combined_cost(torch.stack(costs), torch.stack(seen), occlusion_aware, cost)
     if smoothness[1] > 0:
         c = semi_global(c, *smoothness)
     probs = torch.softmax(-c / temperature, dim=0)
