@@ -212,6 +212,68 @@ def blend(outputs: Sequence[RayOutput], weights: torch.Tensor) -> RayOutput:
     return RayOutput(rgb * acc[:, None], depth, acc)  # type: ignore[operator]
 
 
+@dataclass
+class _TextureWarp:
+    """The terms of :func:`render_texture_image`'s warp (its docstring has the algebra) for
+    ``B`` batches of ``Pb`` pixels: plane k's grid coordinates are
+    ``offsets[k] + scales[k] * (m_front if e[k] > 0 else m_behind)``.
+
+    Shape: offsets [D, 2]; m_front, m_behind [B, 1, Pb, 2] (m(p), or far outside the plane where
+    the crossing would lie behind the target); dz [B, 1, 1, Pb] d_z(p); e, scales [D] and
+    depth_steps [D + 1] (e_k - e_{k-1}) as floats.
+    """
+
+    offsets: torch.Tensor
+    m_front: torch.Tensor
+    m_behind: torch.Tensor
+    dz: torch.Tensor
+    e: list[float]
+    scales: list[float]
+    depth_steps: list[float]
+
+    @staticmethod
+    def of(
+        frame: MPIFrame,
+        K_tgt: torch.Tensor,
+        world_from_tgt: torch.Tensor,
+        width: int,
+        height: int,
+        B: int,
+        dev: torch.device,
+        dt: torch.dtype,
+    ) -> _TextureWarp:
+        """The warp of ``frame``'s planes into the target camera's width x height pixels."""
+        mg = frame.margin
+        grid_from_ref_pixels = torch.tensor(
+            [[2 / (frame.width * mg), 0, -1 / mg], [0, 2 / (frame.height * mg), -1 / mg]], device=dev, dtype=dt
+        )
+        M = grid_from_ref_pixels @ frame.K  # [2, 3]
+        ref_from_tgt = frame.ref_from_world @ world_from_tgt
+        R, t = ref_from_tgt[:3, :3], ref_from_tgt[:3, 3]
+        d_from_pixel = R @ torch.linalg.inv(K_tgt)  # [3, 3]: homogeneous target pixel -> d(p)
+        z = frame.depths
+        e = z - t[2]  # [D]
+        offsets = (M @ t)[None] / z[:, None]  # [D, 2]
+        offsets[e == 0] = 1e12  # a plane through the target centre is seen edge-on: transparent
+        # Pixels, row-major, padded to `blocks` equal batches: [B, 1, Pb, ...].
+        P = width * height
+        Pb = -(-P // B)
+        u = torch.arange(width, device=dev, dtype=dt) + 0.5
+        v = torch.arange(height, device=dev, dtype=dt) + 0.5
+        Q = torch.cat([M @ d_from_pixel, d_from_pixel[2:]])  # [3, 3]: pixel (u, v, 1) -> (M d(p), d_z(p))
+        md = ((v[:, None, None] * Q[:, 1] + Q[:, 2]) + u[None, :, None] * Q[:, 0]).reshape(P, 3)
+        md = torch.cat([md, md[-1:].expand(B * Pb - P, 3)])  # padded with copies of the last pixel
+        dz = md[:, 2].reshape(B, 1, 1, Pb)
+        m = (md[:, :2] / md[:, 2:]).reshape(B, 1, Pb, 2)
+        # lam_k > 0 needs d_z(p) and e_k of the same sign: m where it holds, far outside elsewhere.
+        dz_m = dz.reshape(B, 1, Pb, 1)
+        m_e_pos = torch.where(dz_m > 0, m, 1e12)  # for the planes with e_k > 0 (in front of the target centre)
+        m_e_neg = torch.where(dz_m < 0, m, 1e12)  # for those with e_k <= 0 (the target is inside the MPI)
+        scales, e_list = (e / z).tolist(), e.tolist()
+        depth_steps = torch.cat([e[:1], e[1:] - e[:-1], -e[-1:]]).tolist()  # [D + 1]
+        return _TextureWarp(offsets, m_e_pos, m_e_neg, dz, e_list, scales, depth_steps)
+
+
 def render_texture_image(
     rgba_premult: torch.Tensor,
     frame: MPIFrame,
@@ -260,35 +322,9 @@ def render_texture_image(
     """
     dev, dt = rgba_premult.device, rgba_premult.dtype
     D, _, h, w = rgba_premult.shape
-    mg = frame.margin
-    grid_from_ref_pixels = torch.tensor(
-        [[2 / (frame.width * mg), 0, -1 / mg], [0, 2 / (frame.height * mg), -1 / mg]], device=dev, dtype=dt
-    )
-    M = grid_from_ref_pixels @ frame.K  # [2, 3]
-    ref_from_tgt = frame.ref_from_world @ world_from_tgt
-    R, t = ref_from_tgt[:3, :3], ref_from_tgt[:3, 3]
-    d_from_pixel = R @ torch.linalg.inv(K_tgt)  # [3, 3]: homogeneous target pixel -> d(p)
-    z = frame.depths
-    e = z - t[2]  # [D]
-    offsets = (M @ t)[None] / z[:, None]  # [D, 2]
-    offsets[e == 0] = 1e12  # a plane through the target centre is seen edge-on: transparent
-    # Pixels, row-major, padded to `blocks` equal batches: [B, 1, Pb, ...].
-    P = width * height
     B = blocks or max(1, torch.get_num_threads())
-    Pb = -(-P // B)
-    u = torch.arange(width, device=dev, dtype=dt) + 0.5
-    v = torch.arange(height, device=dev, dtype=dt) + 0.5
-    Q = torch.cat([M @ d_from_pixel, d_from_pixel[2:]])  # [3, 3]: pixel (u, v, 1) -> (M d(p), d_z(p))
-    md = ((v[:, None, None] * Q[:, 1] + Q[:, 2]) + u[None, :, None] * Q[:, 0]).reshape(P, 3)
-    md = torch.cat([md, md[-1:].expand(B * Pb - P, 3)])  # padded with copies of the last pixel
-    dz = md[:, 2].reshape(B, 1, 1, Pb)
-    m = (md[:, :2] / md[:, 2:]).reshape(B, 1, Pb, 2)
-    # lam_k > 0 needs d_z(p) and e_k of the same sign: m where it holds, far outside elsewhere.
-    dz_m = dz.reshape(B, 1, Pb, 1)
-    m_e_pos = torch.where(dz_m > 0, m, 1e12)  # for the planes with e_k > 0 (in front of the target centre)
-    m_e_neg = torch.where(dz_m < 0, m, 1e12)  # for those with e_k <= 0 (the target is inside the MPI)
-    scales, e_list = (e / z).tolist(), e.tolist()
-    depth_steps = torch.cat([e[:1], e[1:] - e[:-1], -e[-1:]]).tolist()  # [D + 1]
+    warp = _TextureWarp.of(frame, K_tgt, world_from_tgt, width, height, B, dev, dt)
+    P, Pb = width * height, warp.dz.shape[-1]
     out = torch.zeros(B, 4, 1, Pb, device=dev, dtype=dt)  # sum_k T_k (C_k, a_k)
     trans = torch.ones(B, 1, 1, Pb, device=dev, dtype=dt)  # T_k
     depth_sum = torch.zeros(B, 1, 1, Pb, device=dev, dtype=dt)  # d_z(p) x depth
@@ -297,19 +333,19 @@ def render_texture_image(
         plane = rgba_premult[k : k + 1]
         if dev.type == "cpu":
             plane.sum()  # the streaming read that brings the plane's texels into cache
-        torch.add(offsets[k], m_e_pos if e_list[k] > 0 else m_e_neg, alpha=scales[k], out=grid)
+        torch.add(warp.offsets[k], warp.m_front if warp.e[k] > 0 else warp.m_behind, alpha=warp.scales[k], out=grid)
         if straight_rgb is None:
             s = F.grid_sample(plane.expand(B, 4, h, w), grid, align_corners=False)  # [B, 4, 1, Pb]
         else:  # the alpha channel alone bilinear, the colour bicubic
             a = F.grid_sample(plane[:, 3:].expand(B, 1, h, w), grid, align_corners=False)
             rgb = sample_colour_bicubic(straight_rgb[k : k + 1].expand(B, 3, h, w), grid)
             s = torch.cat([rgb * a, a], 1)
-        depth_sum.add_(trans, alpha=depth_steps[k])
+        depth_sum.add_(trans, alpha=warp.depth_steps[k])
         out.addcmul_(s, trans)
         trans.addcmul_(trans, s[:, 3:], value=-1)  # T_{k+1} = T_k (1 - a_k)
-    depth_sum.add_(trans, alpha=depth_steps[D])
+    depth_sum.add_(trans, alpha=warp.depth_steps[D])
     out = out.permute(1, 0, 2, 3).reshape(4, B * Pb)[:, :P]
-    return RayOutput(out[:3].T, (depth_sum / dz).reshape(-1)[:P], out[3])
+    return RayOutput(out[:3].T, (depth_sum / warp.dz).reshape(-1)[:P], out[3])
 
 
 def blend_selection(
