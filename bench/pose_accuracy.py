@@ -27,6 +27,7 @@ import numpy as np
 from PIL import Image
 
 from bench.poses_e2e import alignment, with_exif_focal
+from bench.scoreboard import pose_accuracy_table
 from cmc.bench import git_commit
 from cmc.cameras import cameras_from_llff
 from cmc.datasets import load_llff
@@ -120,19 +121,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 def markdown_table(report: dict[str, Any]) -> str:
     """The summary per scene and EXIF case as a Markdown table, with the command, date and commit."""
-    lines = [
-        f"`{report['command']}` ({report['commit']}, {report['date']}, {report['machine']})",
-        "",
-        "| scene / EXIF focal | registered | focal error % | rotation error deg | centre error / baseline "
-        "| 3D points |",
-        "|---|---|---|---|---|---|",
-    ]
-    for key, entry in report["scenes"].items():
-        s = entry["summary"]
-        lines.append(
-            f"| {key} | {s['registered']} | {s['median_abs_focal_error_pct']} | {s['median_rotation_error_deg']} "
-            f"| {s['median_centre_error_baseline']} | {s['median_points3D']} |"
-        )
+    lines = [f"`{report['command']}` ({report['commit']}, {report['date']}, {report['machine']})", ""]
+    lines += pose_accuracy_table(report)
     return (
         "\n".join(lines)
         + "\n\nMedians over the triples (absolute focal error; the largest error of the three cameras).\n"

@@ -117,11 +117,27 @@ def poses() -> list[str]:
     return out
 
 
+def pose_accuracy_table(report: dict[str, Any]) -> list[str]:
+    """Markdown rows of a bench/pose_accuracy.py report: one per scene and EXIF case."""
+    out = [
+        "| scene / EXIF focal | registered | focal error % | rotation error deg | centre error / baseline "
+        "| 3D points |",
+        "|---|---|---|---|---|---|",
+    ]
+    for key, entry in report["scenes"].items():
+        m = entry["summary"]
+        out.append(
+            f"| {key} | {m['registered']} | {m['median_abs_focal_error_pct']} | {m['median_rotation_error_deg']} "
+            f"| {m['median_centre_error_baseline']} | {m['median_points3D']} |"
+        )
+    return out
+
+
 def pose_accuracy() -> list[str]:
     r = load(POSE_ACCURACY_REPORT)
     if r is None:
         return []
-    out = [
+    return [
         "## The poses `cmc poses` estimates from three photos, against the dataset's",
         "",
         f"`{r['command']}`, {source(r, POSE_ACCURACY_REPORT)}: SfM on five evenly spaced triples of",
@@ -129,16 +145,8 @@ def pose_accuracy() -> list[str]:
         "the dataset's cameras by a similarity; medians over the triples of the absolute focal length",
         "error and of the largest rotation and centre error of the three cameras. No training.",
         "",
-        "| scene / EXIF focal | registered | focal error % | rotation error deg | centre error / baseline |",
-        "|---|---|---|---|---|",
+        *pose_accuracy_table(r),
     ]
-    for key, entry in r["scenes"].items():
-        m = entry["summary"]
-        out.append(
-            f"| {key} | {m['registered']} | {m['median_abs_focal_error_pct']} | {m['median_rotation_error_deg']} "
-            f"| {m['median_centre_error_baseline']} |"
-        )
-    return out
 
 
 def speed() -> list[str]:
