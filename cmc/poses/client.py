@@ -125,7 +125,6 @@ def _near_far_from_matches(
     """Near/far [N, 2] of each photo from SIFT matches triangulated with the app's cameras, and
     the triangulation's statistics (stages 'features', 'matching', 'triangulation')."""
     with quiet(pycolmap, opt.verbose):
-        pycolmap.set_random_seed(opt.seed)
         matches = features_and_matches(
             pycolmap,
             photos,

@@ -179,7 +179,9 @@ def features_and_matches(
     single_camera: bool,
     use_priors: bool,
 ) -> Matches:
-    """SIFT into a fresh database, EXIF focal priors into its cameras, exhaustive matching."""
+    """SIFT into a fresh database, EXIF focal priors into its cameras, exhaustive matching
+    (pycolmap's random seed set to ``seed`` first, so reruns match the same)."""
+    pycolmap.set_random_seed(seed)
     database.unlink(missing_ok=True)
     sfm_dir = photos.sfm_paths[0].parent
     file_names = [p.name for p in photos.sfm_paths]

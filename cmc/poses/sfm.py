@@ -77,7 +77,6 @@ def estimate_poses(
         refuse_identical(photos)
         cancel.check()
         single_camera = one_device(photos)
-        pycolmap.set_random_seed(opt.seed)
         matches = features_and_matches(
             pycolmap,
             photos,
