@@ -27,6 +27,7 @@ import argparse
 import datetime
 import json
 import struct
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -116,22 +117,11 @@ def score(scene: Scene, targets: list[tuple[np.ndarray, np.ndarray]]) -> dict[st
         row = np.round((uv[:, 1] - grid[0, 0, 1]) / (grid[1, 0, 1] - grid[0, 0, 1])).astype(int).clip(0, h - 1)
         disparity = 1 / fr.depths.numpy()  # decreasing with the plane index
         true_plane = np.interp(1 / z, disparity[::-1], np.arange(len(disparity))[::-1].astype(float))
-        p = cfg.pyramid
         for label, cost, temperature, supersample, smoothness, occlusion_aware in COSTS:
-            probs = plane_sweep_weights(
-                frames,
-                images,
-                k,
-                h,
-                w,
-                temperature,
-                occlusion_aware=occlusion_aware,
-                edge_sigma=p.stereo_edge_sigma or None,
-                extend_border=p.stereo_extend_border,
-                cost=cost,
-                supersample=supersample,
-                smoothness=smoothness,
+            sweep = replace(
+                cfg.sweep, temperature=temperature, occlusion_aware=occlusion_aware, cost=cost, smoothness=smoothness
             )
+            probs = plane_sweep_weights(frames, images, k, h, w, sweep, supersample)
             best, plane = probs.max(0)
             sure = (best > 0.5).numpy()
             err = np.abs(plane.numpy()[row, col] - true_plane)

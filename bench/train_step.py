@@ -4,7 +4,7 @@ The job: fern's three training views (``images_8``, RegNeRF split), ``fast`` pre
 timed in its own process, the two alternating, ``--rounds`` times; a process times ``--steps``
 steps of each loss phase (reconstruction only, from step 0; the full loss, from step 150) after
 two warm-up steps, and reports their medians. The plane-sweep start is off
-(``model.pyramid.stereo_init=false``): it only sets the initial alpha, and a step samples every
+(``model.pyramid.init_from_sweep=false``): it only sets the initial alpha, and a step samples every
 plane of every ray whatever alpha holds, so the step's cost does not depend on it, and each
 process is spared the sweep's 45 s.
 
@@ -39,7 +39,7 @@ from cmc.datasets import load_llff
 from cmc.training import Trainer
 data, steps = sys.argv[1], int(sys.argv[2])
 torch.manual_seed(0)
-cfg = with_settings(preset_config("fast"), ["model.pyramid.stereo_init=false"])
+cfg = with_settings(preset_config("fast"), ["model.pyramid.init_from_sweep=false"])
 trainer = Trainer(load_llff(data).train, cfg)
 out = {}
 for phase, start in (("reconstruction_only", 0), ("full", 150)):

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
-from typing import Any, Literal
+from typing import Any, Literal, get_type_hints
 
 from cmc.errors import ConfigError
 from cmc.fields import MLPFieldConfig, PyramidFieldConfig
+from cmc.planesweep import SweepConfig
 
 Preset = Literal["paper", "fast"]
 PRESETS: tuple[Preset, ...] = ("paper", "fast")
@@ -36,6 +37,9 @@ class ModelConfig:
     # Learn each input photo's colour response (gain and offset per channel, cmc.model.ExposureResponse),
     # so that an MPI is compared with another input photo in that photo's exposure and white balance.
     exposure_compensation: bool = True
+    # The plane sweep that places the planes (with plane_density_floor below 1) and starts the
+    # pyramid field's alpha (PyramidFieldConfig.init_from_sweep).
+    sweep: SweepConfig = field(default_factory=SweepConfig)
     mlp: MLPFieldConfig = field(default_factory=MLPFieldConfig)
     pyramid: PyramidFieldConfig = field(default_factory=PyramidFieldConfig)
 
@@ -80,12 +84,21 @@ class TrainConfig:
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> TrainConfig:
-        m = dict(d["model"])
-        m["mlp"] = MLPFieldConfig(**m["mlp"])
-        p = dict(m["pyramid"])
-        p = {k: tuple(v) if isinstance(v, list) else v for k, v in p.items()}
-        m["pyramid"] = PyramidFieldConfig(**p)
-        return TrainConfig(**{**d, "model": ModelConfig(**m), "loss": LossConfig(**d["loss"])})
+        """The inverse of :meth:`to_dict` (lists back to tuples, nested groups to dataclasses)."""
+        return _dataclass_from_dict(TrainConfig, d)
+
+
+def _dataclass_from_dict(cls: type, d: dict[str, Any]) -> Any:
+    hints = get_type_hints(cls)
+    values = {}
+    for f in fields(cls):
+        v = d[f.name]
+        if is_dataclass(hints[f.name]):
+            v = _dataclass_from_dict(hints[f.name], v)
+        elif isinstance(v, list):
+            v = tuple(v)
+        values[f.name] = v
+    return cls(**values)
 
 
 def preset_config(name: str, **overrides: Any) -> TrainConfig:
@@ -96,11 +109,11 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       the first 30 %, then lambda_ac = lambda_dc = 1.
     * ``fast``: explicit multi-resolution plane textures (see cmc.fields.PyramidPlaneField),
       alpha initialised by an occlusion-aware, edge-aware plane sweep with the AD-Census cost
-      (``stereo_cost="ad_census"``) and semi-global aggregation (``stereo_smoothness=(0.2,
+      (``sweep.cost="ad_census"``) and semi-global aggregation (``sweep.smoothness=(0.2,
       2.0)``: an untextured wall takes the depth its neighbours agree on), softmin temperature
       0.3, run on a grid twice as fine as alpha's finest level while that grid holds at most
-      ``stereo_max_texels`` (``stereo_supersample=2``), the margin beyond the photo starting
-      with the border's geometry (``stereo_extend_border``); 56 planes, the paper's losses
+      ``sweep.max_texels`` (``sweep.supersample=2``), the margin beyond the photo starting
+      with the border's geometry (``sweep.extend_border``); 56 planes, the paper's losses
       except L_ac (which blurred novel views in the ablation), the depth-consistency terms
       in an occlusion-tolerant form (cmc.losses.robust_depth_consistency), plus a concentration
       prior on each ray's opacity (cmc.losses.distortion) and a binary-entropy prior on the alpha
@@ -109,7 +122,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       the reference photo gets its own texture) sampled bicubically
       (``model.pyramid.base_interpolation``: detail survives the sub-texel shifts of a novel
       view), behind every texel's visible surface the base colours of the farther plane groups
-      starting as the background nearby (``stereo_hidden_colour_everywhere``: what a view beside
+      starting as the background nearby (``pyramid.hidden_colour_everywhere``: what a view beside
       the photo sees past an outline is background, not a smear of the occluder), the colour
       gradients each MPI gets from the other input views' rays scaled by 0.1
       (``loss.cross_view_colour``: its colours stay those of its own photo, its geometry answers

@@ -98,8 +98,8 @@ class MLPField(MPIField):
 
 @dataclass
 class PyramidFieldConfig:
-    """Explicit multi-resolution plane textures and the plane sweep that starts their alpha
-    (defaults: the ``fast`` preset's)."""
+    """Explicit multi-resolution plane textures and how the plane sweep starts them (defaults:
+    the ``fast`` preset's)."""
 
     scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane RGBA residual levels
     base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
@@ -108,25 +108,11 @@ class PyramidFieldConfig:
     # texture seen at another sub-texel phase than it was fitted at keeps its detail; the bake
     # records it and the renderers sample the baked colour the same way, see cmc.baking).
     base_interpolation: Literal["bilinear", "bicubic"] = "bicubic"
-    stereo_init: bool = True  # start alpha from plane-sweep photo-consistency (cmc.planesweep)
-    # Softmin temperature of that prior, in units of the sweep's cost (lower: more confident).
-    stereo_temperature: float = 0.3
-    stereo_occlusion_aware: bool = True  # that prior takes the best-matching other view, not the mean
-    # The photo-consistency measure (cmc.planesweep): "ad" (mean absolute colour difference) or
-    # "ad_census" (that plus a census term, both saturated).
-    stereo_cost: Literal["ad", "ad_census"] = "ad_census"
-    stereo_edge_sigma: float = 0.1  # > 0: edge-aware cost aggregation (cmc.planesweep), colour scale
-    stereo_extend_border: bool = True  # the margin starts with the image border's geometry (cmc.planesweep)
-    # (P1, P2) of semi-global aggregation of the sweep's cost (cmc.planesweep.semi_global), in
-    # cost units; P2 = 0: off.
-    stereo_smoothness: tuple[float, float] = (0.2, 2.0)
-    stereo_supersample: int = 2  # the sweep runs on a grid this many times finer than alpha's finest level
-    # ... as long as that grid holds at most this many texels (cmc.planesweep.affordable_supersample)
-    stereo_max_texels: int = 2**19
+    init_from_sweep: bool = True  # start alpha from the plane sweep (cmc.planesweep, ModelConfig.sweep)
     # True: the base colours of the groups behind each texel's visible surface (the sweep's most
     # probable plane) start as the background continued from nearby (cmc.model.hidden_layer_colours);
     # False: every group starts as the reference photo.
-    stereo_hidden_colour_everywhere: bool = True
+    hidden_colour_everywhere: bool = True
 
 
 def plane_group_bounds(num_planes: int, groups: int) -> list[int]:

@@ -12,7 +12,7 @@ from torch import nn
 from cmc.config import ModelConfig
 from cmc.datasets import Scene
 from cmc.errors import ConfigError
-from cmc.fields import MLPField, MPIField, PyramidFieldConfig, PyramidPlaneField, plane_group_bounds
+from cmc.fields import MLPField, MPIField, PyramidPlaneField, plane_group_bounds
 from cmc.geometry import content_plane_depths, occupied_depth_range, texel_grid
 from cmc.planesweep import affordable_supersample, alpha_from_weights, plane_sweep_weights
 from cmc.rendering import ImageOutput, MPIFrame, render_image
@@ -60,26 +60,15 @@ def padded_reference(image: np.ndarray, frame: MPIFrame) -> torch.Tensor:
 
 
 def sweep_probabilities(
-    frames: list[MPIFrame], images: torch.Tensor, ref: int, cfg: PyramidFieldConfig, supersample: bool = True
+    frames: list[MPIFrame], images: torch.Tensor, ref: int, cfg: ModelConfig, supersample: bool = True
 ) -> torch.Tensor:
-    """[D, h, w] the plane sweep of MPI ``ref`` (:func:`plane_sweep_weights`) with the pyramid
-    field's stereo settings, on the grid of alpha's finest level; on the finer grid those settings
-    ask for (where affordable) unless ``supersample`` is False. images: [N, 3, H, W]."""
-    h, w = (max(2, round(e * cfg.scales[0])) for e in frames[ref].extent)
-    return plane_sweep_weights(
-        frames,
-        images,
-        ref,
-        h,
-        w,
-        cfg.stereo_temperature,
-        occlusion_aware=cfg.stereo_occlusion_aware,
-        edge_sigma=cfg.stereo_edge_sigma or None,
-        extend_border=cfg.stereo_extend_border,
-        cost=cfg.stereo_cost,
-        smoothness=tuple(cfg.stereo_smoothness),
-        supersample=affordable_supersample(h, w, cfg.stereo_supersample, cfg.stereo_max_texels) if supersample else 1,
-    )
+    """[D, h, w] the plane sweep of MPI ``ref`` (:func:`plane_sweep_weights`) with ``cfg.sweep``,
+    on the grid of the pyramid field's finest alpha level; on the finer grid ``cfg.sweep`` asks
+    for (where affordable) unless ``supersample`` is False. images: [N, 3, H, W]."""
+    sweep = cfg.sweep
+    h, w = (max(2, round(e * cfg.pyramid.scales[0])) for e in frames[ref].extent)
+    factor = affordable_supersample(h, w, sweep.supersample, sweep.max_texels) if supersample else 1
+    return plane_sweep_weights(frames, images, ref, h, w, sweep, factor)
 
 
 def sweep_statistics(frames: list[MPIFrame], images: torch.Tensor, cfg: ModelConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +83,7 @@ def sweep_statistics(frames: list[MPIFrame], images: torch.Tensor, cfg: ModelCon
     """
     density, surfaces = [], []
     for i, fr in enumerate(frames):
-        probs = sweep_probabilities(frames, images, i, cfg.pyramid, supersample=False)
+        probs = sweep_probabilities(frames, images, i, cfg, supersample=False)
         h, w = probs.shape[-2:]
         inside = (texel_grid(h, w, probs.device).abs() <= 1 / fr.margin).all(-1)
         p = probs[:, inside].double()  # [D, T]
@@ -209,10 +198,10 @@ class CMCModel(nn.Module):
                 fields.append(MLPField(cfg.num_planes, cfg.mlp))
             elif cfg.field_type == "pyramid":
                 init_alpha, rgb = None, padded_reference(scene.images[i], fr)
-                if cfg.pyramid.stereo_init:
-                    probs = sweep_probabilities(self.frames, images, i, cfg.pyramid)
+                if cfg.pyramid.init_from_sweep:
+                    probs = sweep_probabilities(self.frames, images, i, cfg)
                     init_alpha = alpha_from_weights(probs)
-                    if cfg.pyramid.stereo_hidden_colour_everywhere:
+                    if cfg.pyramid.hidden_colour_everywhere:
                         rgb = hidden_layer_colours(rgb, probs.argmax(0), cfg.num_planes, cfg.pyramid.base_groups)
                 fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha))
             else:

@@ -3,20 +3,41 @@
 For MPI i and plane k, every texel of the plane extent is a 3D point; it is projected into the
 other input views with the plane-induced homography, and the colour found there is compared
 with the reference photo. Planes on which the views agree are likely surfaces. The ``fast``
-preset starts its alpha from this (``PyramidFieldConfig.stereo_init``), so training refines a
-plausible geometry instead of discovering one from uniform fog.
+preset starts its alpha from this (``PyramidFieldConfig.init_from_sweep``), so training refines a
+plausible geometry instead of discovering one from uniform fog; :class:`SweepConfig` holds the
+sweep's settings.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
+from dataclasses import dataclass, replace
+from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
 
 from cmc.geometry import homographies_ref_from_tgt, texel_grid
+
+
+@dataclass
+class SweepConfig:
+    """How :func:`plane_sweep_weights` scores the planes (defaults: the ``fast`` preset's)."""
+
+    # Softmin temperature on the cost, in its units (lower: more confident).
+    temperature: float = 0.3
+    window: int = 5  # side of the texel window the cost is averaged over
+    # The photo-consistency measure: "ad" (mean absolute colour difference) or "ad_census"
+    # (that plus a census term, both saturated).
+    cost: Literal["ad", "ad_census"] = "ad_census"
+    edge_sigma: float = 0.1  # > 0: edge-aware window weights, in colour units; 0: uniform window
+    occlusion_aware: bool = True  # the best-matching other view's cost, not the mean over views
+    extend_border: bool = True  # the margin takes the geometry of the image's border
+    # (P1, P2) of semi-global aggregation of the cost (:func:`semi_global`), in cost units; P2 = 0: off.
+    smoothness: tuple[float, float] = (0.2, 2.0)
+    supersample: int = 2  # sweep on a grid this many times finer than alpha's finest level ...
+    max_texels: int = 2**19  # ... while that grid holds at most this many texels (affordable_supersample)
 
 
 def texel_pixels(frame, height: int, width: int) -> torch.Tensor:
@@ -87,48 +108,40 @@ def plane_sweep_weights(
     ref: int,
     height: int,
     width: int,
-    temperature: float = 0.05,
-    window: int = 5,
-    occlusion_aware: bool = False,
-    edge_sigma: float | None = None,
-    extend_border: bool = False,
-    cost: str = "ad",
-    smoothness: tuple[float, float] = (0.0, 0.0),
+    cfg: SweepConfig,
     supersample: int = 1,
 ) -> torch.Tensor:
     """Per-texel probability that each plane of MPI ``ref`` holds the visible surface.
 
     The cost of a plane at a texel compares the reference photo with another view warped onto
-    the plane: with ``cost="ad"`` the mean absolute colour difference; with ``"ad_census"`` that
-    difference and the census distance (:func:`census_distance`), each mapped to [0, 1) by
+    the plane: with ``cfg.cost="ad"`` the mean absolute colour difference; with ``"ad_census"``
+    that difference and the census distance (:func:`census_distance`), each mapped to [0, 1) by
     ``1 - exp(-c / scale)`` and summed (AD-Census, Mei et al. 2011: the census term ranks
     brightness within a patch, so it holds under the exposure and vignetting differences of real
     photos; the colour term separates patches of the same texture but different colour). It is
-    averaged over a ``window`` x ``window`` neighbourhood: uniformly, or with ``edge_sigma``
-    weighted by ``exp(-|I(x) - I(y)| / edge_sigma)`` (mean absolute colour difference of the
-    reference photo between the texel and its neighbour), so that the costs of a background do
-    not leak across an object's outline (foreground fattening). The views' costs are averaged,
-    or with ``occlusion_aware`` the lowest is taken (a surface hidden from one view by an
-    occluder still matches in another). Texels no other view sees get a flat cost, that of a
-    random match.
+    averaged over a ``cfg.window`` x ``cfg.window`` neighbourhood: uniformly, or with
+    ``cfg.edge_sigma`` > 0 weighted by ``exp(-|I(x) - I(y)| / edge_sigma)`` (mean absolute colour
+    difference of the reference photo between the texel and its neighbour), so that the costs of
+    a background do not leak across an object's outline (foreground fattening). The views' costs
+    are averaged, or with ``cfg.occlusion_aware`` the lowest is taken (a surface hidden from one
+    view by an occluder still matches in another). Texels no other view sees get a flat cost,
+    that of a random match. ``cfg.smoothness`` (P1, P2) aggregates the window-averaged cost
+    semi-globally (:func:`semi_global`) before the softmin at ``cfg.temperature``.
 
     Texels of the margin (outside the reference image) hold no reference colour, only the
     edge-extended photo, so their costs match streaks by chance (near-plane smears wherever a
-    target looks past an input's border). With ``extend_border`` they take the probabilities of
-    the nearest texel inside the image instead: the border's geometry continues outwards, as its
-    colour does.
+    target looks past an input's border). With ``cfg.extend_border`` they take the
+    probabilities of the nearest texel inside the image instead: the border's geometry
+    continues outwards, as its colour does.
 
     Args:
         frames: the MPIFrames of all views; images: [N, 3, H, W] in [0, 1].
         height, width: texel grid over the plane extent.
-        temperature: softmin temperature on the cost (mean absolute colour difference for
-            "ad"; the sum of the two saturated terms, in [0, 2), for "ad_census").
-        smoothness: (P1, P2) of semi-global aggregation (:func:`semi_global`) of the
-            window-averaged cost before the softmin; P2 = 0: none.
         supersample: run the sweep on a grid this many times finer in each direction (the
             window scaled with it) and average the probabilities back over each texel: a texel
             straddling a depth edge then holds both surfaces in proportion, and thin structures
-            (fern's leaflets, 1-2 pixels wide) are matched at the photo's resolution.
+            (fern's leaflets, 1-2 pixels wide) are matched at the photo's resolution. (Callers
+            bound ``cfg.supersample`` by :func:`affordable_supersample`.)
     Returns:
         [D, height, width] probabilities summing to 1 over planes.
     """
@@ -137,41 +150,29 @@ def plane_sweep_weights(
     if supersample > 1:
         # The sweep on a grid ``supersample`` times finer, with the same window footprint (rounded
         # down to an odd size); the probabilities are averaged back over each texel.
-        fine_window = window * supersample - (window * supersample + 1) % 2
-        fine = plane_sweep_weights(
-            frames,
-            images,
-            ref,
-            height * supersample,
-            width * supersample,
-            temperature,
-            window=fine_window,
-            occlusion_aware=occlusion_aware,
-            edge_sigma=edge_sigma,
-            extend_border=extend_border,
-            cost=cost,
-            smoothness=smoothness,
-        )
+        fine_window = cfg.window * supersample - (cfg.window * supersample + 1) % 2
+        fine_cfg = replace(cfg, window=fine_window)
+        fine = plane_sweep_weights(frames, images, ref, height * supersample, width * supersample, fine_cfg)
         return F.avg_pool2d(fine[None], supersample)[0]
     fr = frames[ref]
     uv_ref = texel_pixels(fr, height, width)  # [T, 2]
     ref_rgb, _ = sample_image(images[ref], uv_ref)
-    if cost not in ("ad", "ad_census"):
-        raise ValueError(f"unknown plane-sweep cost {cost!r}; choose 'ad' or 'ad_census'")
+    if cfg.cost not in ("ad", "ad_census"):
+        raise ValueError(f"unknown plane-sweep cost {cfg.cost!r}; choose 'ad' or 'ad_census'")
     ref_grid = ref_rgb.T.reshape(3, height, width)
     p = torch.cat([uv_ref, torch.ones_like(uv_ref[:, :1])], -1)
-    aggregate = _window_mean(ref_grid, window, edge_sigma)
+    aggregate = _window_mean(ref_grid, cfg.window, cfg.edge_sigma or None)
     costs, seen = [], []
     for j, other in enumerate(frames):
         if j != ref:
-            view_cost, view_seen = _view_cost(fr, other, images[j], ref_rgb, ref_grid, p, aggregate, cost)
+            view_cost, view_seen = _view_cost(fr, other, images[j], ref_rgb, ref_grid, p, aggregate, cfg.cost)
             costs.append(view_cost)
             seen.append(view_seen)
-    c = _combined_cost(torch.stack(costs), torch.stack(seen), occlusion_aware, cost)
-    if smoothness[1] > 0:
-        c = semi_global(c, *smoothness)
-    probs = torch.softmax(-c / temperature, dim=0)
-    if extend_border:
+    c = _combined_cost(torch.stack(costs), torch.stack(seen), cfg.occlusion_aware, cfg.cost)
+    if cfg.smoothness[1] > 0:
+        c = semi_global(c, *cfg.smoothness)
+    probs = torch.softmax(-c / cfg.temperature, dim=0)
+    if cfg.extend_border:
         uv = uv_ref.reshape(height, width, 2)
         rows = _nearest_inside(uv[:, 0, 1], fr.height)  # texel rows whose v lies in [0, H]
         cols = _nearest_inside(uv[0, :, 0], fr.width)

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 
 from cmc.datasets import Layer, render_layers, synthetic_cameras
-from cmc.fields import PyramidFieldConfig
 from cmc.geometry import plane_depths
 from cmc.model import hidden_layer_colours
 from cmc.planesweep import (
+    SweepConfig,
     _window_mean,
     affordable_supersample,
     alpha_from_weights,
@@ -20,6 +22,16 @@ from cmc.planesweep import (
     semi_global_torch,
 )
 from cmc.rendering import MPIFrame, composite
+
+
+def sweep(**settings) -> SweepConfig:
+    """The plain sweep (mean absolute difference averaged over the views in a uniform 5x5
+    window, no aggregation, no border extension) with ``settings`` changed."""
+    plain = SweepConfig(
+        cost="ad", edge_sigma=0.0, occlusion_aware=False, extend_border=False, smoothness=(0.0, 0.0), supersample=1
+    )
+    return replace(plain, **settings)
+
 
 WALL_PLANES = 24
 
@@ -41,7 +53,7 @@ def test_wall_is_found_on_its_plane():
     """A textured wall at world z = 4 seen by 3 cameras looking at (0, 0, 4): for the middle
     camera, texels inside its image put most weight on the plane nearest the wall's depth."""
     frames, imgs, true_plane = _textured_wall()
-    w = plane_sweep_weights(frames, imgs, 1, 72, 96, temperature=0.02)
+    w = plane_sweep_weights(frames, imgs, 1, 72, 96, sweep(temperature=0.02))
     assert w.shape == (WALL_PLANES, 72, 96)
     torch.testing.assert_close(w.sum(0), torch.ones(72, 96))
     best = w.argmax(0)[20:52, 30:66]  # central texels, seen by all views
@@ -67,7 +79,7 @@ def _wall_behind_post_planes(occlusion_aware: bool) -> tuple[float, float]:
     near, far, D = 1.5, 7.0, 24
     frames = [MPIFrame.create(cams.K[i], cams.world_from_cam[i], near, far, D, 96, 72, 1.0) for i in range(3)]
     imgs = torch.as_tensor(images).permute(0, 3, 1, 2)
-    w = plane_sweep_weights(frames, imgs, 1, 72, 96, temperature=0.02, occlusion_aware=occlusion_aware)
+    w = plane_sweep_weights(frames, imgs, 1, 72, 96, sweep(temperature=0.02, occlusion_aware=occlusion_aware))
     wall_plane = int(np.abs(plane_depths(near, far, D) - 5.0).argmin())
     good = ((w.argmax(0) - wall_plane).abs() <= 1).numpy()
     # Which reference pixels on the wall does each other camera see? Project the wall point and
@@ -103,7 +115,7 @@ def test_occlusion_aware_sweep_finds_surfaces_one_view_cannot_see():
     assert both_best > 0.9 and both_mean > 0.9, (both_best, both_mean)
 
 
-def _fattening(edge_sigma: float | None) -> float:
+def _fattening(edge_sigma: float) -> float:
     """A card at z = 2 in front of a wall at z = 5, from the middle of three cameras: the share of
     wall texels within 3 texels of the card's outline whose best plane is the card's."""
     cams = synthetic_cameras(3, width=96, height=72, baseline=0.6)
@@ -112,7 +124,7 @@ def _fattening(edge_sigma: float | None) -> float:
     near, far, D = 1.5, 7.0, 24
     frames = [MPIFrame.create(cams.K[i], cams.world_from_cam[i], near, far, D, 96, 72, 1.0) for i in range(3)]
     imgs = torch.as_tensor(images).permute(0, 3, 1, 2)
-    w = plane_sweep_weights(frames, imgs, 1, 72, 96, temperature=0.02, window=7, edge_sigma=edge_sigma)
+    w = plane_sweep_weights(frames, imgs, 1, 72, 96, sweep(temperature=0.02, window=7, edge_sigma=edge_sigma))
     card_plane = int(np.abs(plane_depths(near, far, D) - 2.0).argmin())
     on_card = torch.as_tensor(depth[1] < 3.0)
     near_card = torch.nn.functional.max_pool2d(on_card[None, None].float(), 7, stride=1, padding=3)[0, 0] > 0
@@ -126,7 +138,7 @@ def test_edge_aware_aggregation_reduces_foreground_fattening():
     here); weighting the window by colour similarity in the reference photo keeps more of it on
     the card (0.49; the procedural card and wall share colours, so similarity separates them only
     in part)."""
-    uniform, edge_aware = _fattening(None), _fattening(0.1)
+    uniform, edge_aware = _fattening(0.0), _fattening(0.1)
     assert uniform > 0.4, uniform  # the failure exists in this scene
     assert edge_aware < 0.8 * uniform, (edge_aware, uniform)
 
@@ -147,7 +159,7 @@ def test_margin_texels_take_the_border_geometry():
     margin[round(h * 0.2 / m) : h - round(h * 0.2 / m), round(w * 0.2 / m) : w - round(w * 0.2 / m)] = False
 
     def on_wall(extend: bool) -> tuple[float, float]:
-        p = plane_sweep_weights(frames, imgs, 1, h, w, temperature=0.02, extend_border=extend)
+        p = plane_sweep_weights(frames, imgs, 1, h, w, sweep(temperature=0.02, extend_border=extend))
         good = (p.argmax(0) - true_plane).abs() <= 1
         return float(good[margin].float().mean()), float(good[~margin].float().mean())
 
@@ -234,7 +246,7 @@ def _wall_under_exposure_change(cost: str, temperature: float) -> float:
     imgs = imgs.clone()
     for j in (0, 2):
         imgs[j] = (imgs[j] * 1.4 * torch.as_tensor(vignette, dtype=imgs.dtype)).clamp(0, 1)
-    w = plane_sweep_weights(frames, imgs, 1, 72, 96, temperature=temperature, cost=cost)
+    w = plane_sweep_weights(frames, imgs, 1, 72, 96, sweep(temperature=temperature, cost=cost))
     return float((w.argmax(0)[20:52, 30:66] - true_plane).abs().le(1).float().mean())
 
 
@@ -251,9 +263,9 @@ def test_supersampled_sweep_is_a_distribution_on_the_coarse_grid():
     """With supersample=2 the sweep runs on a 2x finer grid (window 9 for 5) and returns the
     probabilities averaged over each texel of the requested grid: they sum to 1 and find the wall."""
     frames, imgs, true_plane = _textured_wall()
-    w = plane_sweep_weights(frames, imgs, 1, 36, 48, temperature=0.1, cost="ad_census", supersample=2)
+    w = plane_sweep_weights(frames, imgs, 1, 36, 48, sweep(temperature=0.1, cost="ad_census"), 2)
     assert w.shape == (WALL_PLANES, 36, 48)
-    fine = plane_sweep_weights(frames, imgs, 1, 72, 96, temperature=0.1, window=9, cost="ad_census")
+    fine = plane_sweep_weights(frames, imgs, 1, 72, 96, sweep(temperature=0.1, window=9, cost="ad_census"))
     torch.testing.assert_close(w, torch.nn.functional.avg_pool2d(fine[None], 2)[0])
     torch.testing.assert_close(w.sum(0), torch.ones(36, 48))
     assert (w.argmax(0)[10:26, 15:33] - true_plane).abs().le(1).float().mean() > 0.9
@@ -263,7 +275,7 @@ def test_supersample_falls_back_to_a_coarser_grid_for_large_photos():
     """Fern at 504x378 (alpha's finest grid 227x302) sweeps on the 2x grid; at 1008x756 the 2x
     grid would hold 1.1 M texels, over the default budget, so it sweeps on alpha's own grid (which
     is then as fine as the 504 photo's 2x grid)."""
-    budget = PyramidFieldConfig().stereo_max_texels
+    budget = SweepConfig().max_texels
     assert affordable_supersample(227, 302, 2, budget) == 2
     assert affordable_supersample(454, 605, 2, budget) == 1
     assert affordable_supersample(100, 100, 3, 200 * 200) == 2
@@ -278,7 +290,7 @@ def _noisy_wall_share(smoothness: tuple[float, float]) -> float:
     g = torch.Generator().manual_seed(0)
     imgs = 0.5 + 0.2 * (imgs - 0.5)
     imgs = (imgs + 0.03 * torch.randn(imgs.shape, generator=g)).clamp(0, 1)
-    w = plane_sweep_weights(frames, imgs, 1, 72, 96, temperature=0.1, cost="ad_census", smoothness=smoothness)
+    w = plane_sweep_weights(frames, imgs, 1, 72, 96, sweep(temperature=0.1, cost="ad_census", smoothness=smoothness))
     return float((w.argmax(0)[20:52, 30:66] - true_plane).abs().le(1).float().mean())
 
 

@@ -141,9 +141,9 @@ def test_distortion_prior_concentrates_opacity():
     # The alpha entropy prior off: it concentrates opacity too, and this measures the distortion's.
     # Foggy start: the colour-difference cost at a temperature that flattens it.
     foggy = [
-        "model.pyramid.stereo_cost=ad",
-        "model.pyramid.stereo_smoothness=[0,0]",
-        "model.pyramid.stereo_temperature=0.05",
+        "model.sweep.cost=ad",
+        "model.sweep.smoothness=[0,0]",
+        "model.sweep.temperature=0.05",
     ]
     base = with_settings(base, ["model.num_planes=16", *foggy, "loss.lambda_alpha_entropy=0"])
     preset = preset_config("fast").loss.lambda_distortion
@@ -288,7 +288,7 @@ def test_a_base_colour_per_plane_group_gives_hidden_surfaces_their_own_texture()
     for groups in (1, 4):
         # Without the background colour behind every surface, which also starts these surfaces
         # with the background's colour (then 0.037 -> 0.030): this checks what the groups alone give.
-        settings = [f"model.pyramid.base_groups={groups}", "model.pyramid.stereo_hidden_colour_everywhere=false"]
+        settings = [f"model.pyramid.base_groups={groups}", "model.pyramid.hidden_colour_everywhere=false"]
         cfg = with_settings(base, ["model.num_planes=24", *settings])
         trainer = Trainer(split.train, cfg)
         trainer.fit()
@@ -299,7 +299,7 @@ def test_a_base_colour_per_plane_group_gives_hidden_surfaces_their_own_texture()
 def test_background_colour_continues_behind_every_surface():
     """``cards``: the groups of planes behind a texel's visible surface start with the background
     continued from nearby (:func:`cmc.model.hidden_layer_colours`) at every texel
-    (``model.pyramid.stereo_hidden_colour_everywhere``), instead of the photo's colour, the
+    (``model.pyramid.hidden_colour_everywhere``), instead of the photo's colour, the
     card's where it hides the wall. Where a card hides the wall in the reference photo, the
     wall's plane then holds wall colours, not the card's, at the start and still after training
     (error against the wall the other views see there; when this was written, 84x63: 0.233 ->
@@ -311,7 +311,7 @@ def test_background_colour_continues_behind_every_surface():
     base = preset_config("fast", steps=100, rays_per_view=512, unseen_rays=256)
     errors = {}
     for everywhere in ("false", "true"):
-        settings = ["model.num_planes=24", f"model.pyramid.stereo_hidden_colour_everywhere={everywhere}"]
+        settings = ["model.num_planes=24", f"model.pyramid.hidden_colour_everywhere={everywhere}"]
         trainer = Trainer(split.train, with_settings(base, settings))
         start = _hidden_colour_error(trainer, behind_rgb, behind_depth, hidden)
         trainer.fit()
