@@ -38,11 +38,14 @@ camera, and (b)'s model is consistent with its focal length, not the dataset's).
 ``--refine-test-poses`` adds a diagnostic: each registered test pose of each run is refined
 photometrically against that run's frozen baked model (:func:`refine_test_pose`) and scored again,
 which separates the test-view registration error from the quality of the reconstruction itself.
+``--refine-test-poses model`` also registers each held-out photo to the model's own render by
+SIFT matches and P3P (:func:`register_to_model`, which recovers offsets the local photometric
+search cannot), and ``focal`` refines each test view's focal length with its pose.
 
 Usage::
 
     nice -n 19 .venv/bin/python bench/poses_e2e.py --data ../shared/datasets/llff/fern --steps 400 \\
-        --lpips-dir ../shared/weights --out bench/poses_e2e.json [--refine-test-poses]
+        --lpips-dir ../shared/weights --out bench/poses_e2e.json [--refine-test-poses [pose|focal|model]]
 """
 
 from __future__ import annotations
@@ -76,10 +79,12 @@ from cmc.bench import git_commit
 from cmc.cameras import Cameras
 from cmc.config import preset_config, with_settings
 from cmc.datasets import LLFFSplit, Scene, load_image, load_llff, save_image
+from cmc.errors import PoseEstimationError
 from cmc.geometry import mean_baseline
 from cmc.images import FULL_FRAME_DIAGONAL_MM
 from cmc.metrics import image_metrics
 from cmc.poses import PoseResult, estimate_poses, read_colmap_cameras, read_colmap_points
+from cmc.poses.colmap import import_pycolmap
 from cmc.training import Trainer
 
 METRICS = ("psnr", "ssim", "lpips_alex", "lpips_vgg")
@@ -306,7 +311,8 @@ def refine_test_pose(
     depth: float,
     stages: tuple[tuple[int, float], ...] = ((2, 2.0), (2, 0.0), (1, 0.0)),
     iters: int = 6,
-) -> tuple[np.ndarray, dict[str, float]]:
+    focal: bool = False,
+) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
     """Photometric 6-DoF refinement of one test pose against a frozen baked model (diagnostic).
 
     Gauss-Newton / Levenberg-Marquardt on the RGB residual with a forward-difference Jacobian,
@@ -314,35 +320,43 @@ def refine_test_pose(
     resolution); the coarse stages render at reduced size (same camera, K scaled) against the
     area-downsampled target. The update is applied in the camera frame, ``pose @ [exp(w) | v]``,
     with parameters scaled to about one full-resolution pixel of image motion each (rotation:
-    1 / f radians; translation: ``depth`` / f scene units, one pixel at depth ``depth``).
-    Returns the refined pose and the size of the correction.
+    1 / f radians; translation: ``depth`` / f scene units, one pixel at depth ``depth``). With
+    ``focal`` a seventh parameter scales the focal length (one unit: one pixel at the image's
+    left and right edges). Returns the refined pose, the intrinsics and the size of the correction.
     """
     f = float(K[0, 0])
-    unit = np.array([1 / f] * 3 + [depth / f] * 3)
     gt_full = torch.as_tensor(target, dtype=torch.float32)
     H, W = gt_full.shape[:2]
+    unit = np.array([1 / f] * 3 + [depth / f] * 3 + ([2 / W] if focal else []))
 
     def pose_of(p: np.ndarray) -> np.ndarray:
         d = np.eye(4)
-        d[:3, :3], d[:3, 3] = _rodrigues(p[:3] * unit[:3]), p[3:] * unit[3:]
+        d[:3, :3], d[:3, 3] = _rodrigues(p[:3] * unit[:3]), p[3:6] * unit[3:6]
         return pose @ d
 
-    p = np.zeros(6)
+    def K_of(p: np.ndarray) -> np.ndarray:
+        scale = 1 + p[6] * unit[6] if focal else 1.0
+        out = np.array(K, dtype=np.float64)
+        out[0, 0] *= scale
+        out[1, 1] *= scale
+        return out
+
+    p = np.zeros(len(unit))
     for down, sigma in stages:
         w, h = W // down, H // down
-        K_s = np.diag([w / W, h / H, 1.0]) @ K
         gt = gt_full.permute(2, 0, 1)[None]
         gt = torch.nn.functional.adaptive_avg_pool2d(gt, (h, w))[0].permute(1, 2, 0) if down > 1 else gt_full
         gt_b = _blur(gt, sigma)
 
-        def residual(q: np.ndarray, K_s=K_s, w=w, h=h, sigma=sigma, gt_b=gt_b) -> np.ndarray:
+        def residual(q: np.ndarray, w=w, h=h, sigma=sigma, gt_b=gt_b) -> np.ndarray:
+            K_s = np.diag([w / W, h / H, 1.0]) @ K_of(q)
             rgb = baked.render(K_s, pose_of(q), w, h).rgb.float().cpu()
             return (_blur(rgb, sigma) - gt_b).reshape(-1).numpy().astype(np.float64)
 
         r = residual(p)
         lam = 1e-3
         for _ in range(iters):
-            J = np.stack([(residual(p + 0.5 * e) - r) / 0.5 for e in np.eye(6)], 1)
+            J = np.stack([(residual(p + 0.5 * e) - r) / 0.5 for e in np.eye(len(p))], 1)
             JtJ, g = J.T @ J, J.T @ r
             improved = False
             for _ in range(4):
@@ -356,11 +370,85 @@ def refine_test_pose(
                 break
     refined = pose_of(p)
     rel = np.linalg.inv(pose) @ refined
-    return refined, {
-        "rotation_deg": rotation_angle_deg(np.eye(3), rel[:3, :3]),
-        "translation_scene_units": float(np.linalg.norm(rel[:3, 3])),
-        "params_px": p.tolist(),
-    }
+    return (
+        refined,
+        K_of(p),
+        {
+            "rotation_deg": rotation_angle_deg(np.eye(3), rel[:3, :3]),
+            "focal_scale": float(K_of(p)[0, 0] / K[0, 0]),
+            "translation_scene_units": float(np.linalg.norm(rel[:3, 3])),
+            "params_px": p.tolist(),
+        },
+    )
+
+
+def _sift(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT keypoints [M, 2] (cmc pixel convention, as COLMAP's) and unit descriptors [M, 128]
+    of an [H, W, 3] image in [0, 1]."""
+    pycolmap = import_pycolmap()
+    grey = np.ascontiguousarray(np.asarray(image, np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))
+    kp, desc = pycolmap.Sift().extract(grey)
+    desc = desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
+    return kp[:, :2].astype(np.float64), desc
+
+
+def _mutual_matches(da: np.ndarray, db: np.ndarray, ratio: float = 0.8) -> np.ndarray:
+    """[M, 2] index pairs of mutual nearest neighbours between unit descriptors that pass
+    Lowe's ratio test in both directions."""
+    dist = np.sqrt(np.maximum(2 - 2 * da @ db.T, 0))
+    if dist.shape[0] < 2 or dist.shape[1] < 2:
+        return np.zeros((0, 2), int)
+    ab, ba = dist.argmin(1), dist.argmin(0)
+    two_a = np.partition(dist, 1, axis=1)[:, :2]
+    two_b = np.partition(dist, 1, axis=0)[:2]
+    i = np.arange(len(da))
+    keep = (ba[ab] == i) & (two_a[:, 0] < ratio * two_a[:, 1]) & (two_b[0, ab] < ratio * two_b[1, ab])
+    return np.stack([i[keep], ab[keep]], 1)
+
+
+def register_to_model(
+    baked: BakedScene, K: np.ndarray, pose: np.ndarray, target: np.ndarray, rounds: int = 3
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Pose of the photo ``target`` in the frame of the model ``baked``, as a photo is registered
+    into a reconstruction: SIFT matches between the photo and the model's own render at ``pose``,
+    the render's keypoints lifted to 3D by its depth (where its coverage is full and the depth
+    smooth), and LO-RANSAC P3P on those (:func:`cmc.alignment.register_camera`); repeated from the
+    new pose ``rounds`` times. Unlike :func:`refine_test_pose`'s local search it recovers offsets of
+    many pixels. Uses the held-out image: a diagnostic of the reconstruction, not of the protocol."""
+    kp_t, d_t = _sift(target)
+    H, W = target.shape[:2]
+    Kinv = np.linalg.inv(K)
+    history = []
+    for _ in range(rounds):
+        out = baked.render(K, pose)
+        rgb, depth, acc = (t.float().cpu().numpy() for t in (out.rgb, out.depth, out.acc))
+        kp_r, d_r = _sift(rgb)
+        m = _mutual_matches(d_r, d_t)
+        uv = kp_r[m[:, 0]]
+        col = np.clip(uv[:, 0].astype(int), 1, W - 2)
+        row = np.clip(uv[:, 1].astype(int), 1, H - 2)
+        z = depth[row, col]
+        win = np.stack([depth[row + a, col + b] for a in (-1, 0, 1) for b in (-1, 0, 1)])
+        smooth = (win.max(0) - win.min(0)) < 0.02 * z
+        ok = (acc[row, col] > 0.98) & smooth & (z > 0)
+        X_cam = (np.c_[uv[ok], np.ones(int(ok.sum()))] @ Kinv.T) * z[ok, None]
+        X = X_cam @ pose[:3, :3].T + pose[:3, 3]
+        try:
+            new_pose, inliers = register_camera(K, W, H, X, kp_t[m[ok, 1]], max_error_px=2.0)
+        except PoseEstimationError as e:
+            history.append({"matches": int(len(m)), "lifted": int(ok.sum()), "error": str(e)})
+            break
+        rel = np.linalg.inv(pose) @ new_pose
+        history.append(
+            {
+                "matches": int(len(m)),
+                "lifted": int(ok.sum()),
+                "inliers": int(inliers.sum()),
+                "rotation_deg": rotation_angle_deg(np.eye(3), rel[:3, :3]),
+            }
+        )
+        pose = new_pose
+    return pose, {"rounds": history}
 
 
 def train_and_score(
@@ -374,14 +462,16 @@ def train_and_score(
     device: torch.device,
     lpips_dir: str | None,
     save_dir: Path | None,
-    refine: bool = False,
+    refine: str | None = None,
     settings: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """Train the fast preset (with ``settings``, ``--set`` style) on ``scene``, bake, render each
     test camera set and score it.
 
     With ``refine``: also score the first camera set after :func:`refine_test_pose` (label
-    ``<label>_refined``), a diagnostic separating registration error from reconstruction quality.
+    ``<label>_refined``; with ``refine="focal"`` also ``<label>_refined_focal``, each test view's
+    focal length refined with its pose), a diagnostic separating registration error from
+    reconstruction quality.
     """
     cfg = with_settings(preset_config("fast", steps=steps, seed=seed), list(settings))
     record: dict[str, Any] = {"near": scene.near, "far": scene.far, "config": cfg.to_dict()}
@@ -415,20 +505,29 @@ def score_cameras(
     lpips_dir: str | None,
     save_dir: Path | None,
     record: dict[str, Any],
-    refine: bool = False,
+    refine: str | None = None,
 ) -> None:
     """Render and score every camera set of ``test_cameras`` into ``record[label]``."""
     cams = dict(test_cameras)
     if refine:
         label, (Ks, poses) = next(iter(test_cameras.items()))
-        refined, corrections = [], []
-        for k in range(len(test_ids)):
-            t0 = time.perf_counter()
-            pose_k, info = refine_test_pose(baked, Ks[k], poses[k], test_images[k], baked.near)
-            refined.append(pose_k)
-            corrections.append({"view": test_ids[k], **info, "seconds": time.perf_counter() - t0})
-        cams[f"{label}_refined"] = (Ks, np.stack(refined))
-        record["refinement"] = corrections
+        variants = {"pose": ["refined"], "focal": ["refined", "refined_focal"], "model": ["refined", "model"]}
+        for suffix in variants[refine]:
+            refined, refined_K, corrections = [], [], []
+            for k in range(len(test_ids)):
+                t0 = time.perf_counter()
+                start, info = poses[k], {}
+                if suffix == "model":
+                    start, info = register_to_model(baked, Ks[k], poses[k], test_images[k])
+                pose_k, K_k, polish = refine_test_pose(
+                    baked, Ks[k], start, test_images[k], baked.near, focal=suffix == "refined_focal"
+                )
+                info = {**polish, **info}
+                refined.append(pose_k)
+                refined_K.append(K_k)
+                corrections.append({"view": test_ids[k], **info, "seconds": time.perf_counter() - t0})
+            cams[f"{label}_{suffix}"] = (np.stack(refined_K), np.stack(refined))
+            record["refinement" if suffix == "refined" else f"refinement_{suffix}"] = corrections
     for label, (Ks, poses) in cams.items():
         views = []
         for k, view in enumerate(test_ids):
@@ -457,8 +556,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     ap.add_argument(
         "--refine-test-poses",
-        action="store_true",
-        help="diagnostic: also score both runs after photometric refinement of the registered test poses",
+        nargs="?",
+        const="pose",
+        choices=("pose", "focal", "model"),
+        help="diagnostic: also score both runs after photometric refinement of the registered test poses "
+        "('focal': and once more refining each test view's focal length with its pose; 'model': and once "
+        "more after registering each test photo to the model's render by SIFT and P3P, register_to_model)",
     )
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a training setting (both runs)")
     args = ap.parse_args(argv)
@@ -557,6 +660,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             m: run_b[f"{primary}_refined"]["mean"][m] - run_a["dataset_refined"]["mean"][m] for m in METRICS
         }
         if args.refine_test_poses
+        else None,
+        "difference_after_registration_to_the_model": {
+            m: run_b[f"{primary}_model"]["mean"][m] - run_a["dataset_model"]["mean"][m] for m in METRICS
+        }
+        if args.refine_test_poses == "model"
+        else None,
+        "difference_after_test_pose_and_focal_refinement": {
+            m: run_b[f"{primary}_refined_focal"]["mean"][m] - run_a["dataset_refined_focal"]["mean"][m] for m in METRICS
+        }
+        if args.refine_test_poses == "focal"
         else None,
         "target_psnr_gap_db": 0.5,
         "target_met": bool(ma["psnr"] - mb["psnr"] <= 0.5),
