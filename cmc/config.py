@@ -59,9 +59,6 @@ class LossConfig:
     lambda_alpha_entropy: float = 0.003  # visible alpha pushed to 0 or 1 (cmc.losses.alpha_entropy)
     recon_only_fraction: float = 0.3  # first fraction of steps uses L_MSE only (paper: 15/50 epochs)
     cross_view_colour: float = 0.1  # factor on the colour gradients of MPI i from input view j != i
-    # Structural dissimilarity (1 - SSIM) of each MPI's render of an input view's ray patches
-    # against the photo (cmc.losses.patch_dssim; needs TrainConfig.patch_size > 1).
-    lambda_dssim: float = 0.0
 
 
 @dataclass
@@ -72,9 +69,6 @@ class TrainConfig:
     preset: Preset = "fast"
     steps: int = 300
     rays_per_view: int = 4096  # rays drawn from every input view per step
-    # ... as random pixels (1), or in square patches of this side (patches of neighbouring pixels,
-    # which the structural term of the loss compares; rays_per_view rounded down to whole patches)
-    patch_size: int = 1
     unseen_rays: int = 2048  # rays drawn at each unseen pose per step
     unseen_poses: int = 1  # unseen poses per step
     unseen_jitter: float = 0.1  # std of the unseen-pose centre jitter, in mean baselines

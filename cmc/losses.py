@@ -34,29 +34,6 @@ def reconstruction_loss(outs: Sequence[RayOutput], target_rgb: torch.Tensor) -> 
     return torch.stack(terms).mean()
 
 
-def patch_dssim(outs: Sequence[RayOutput], target_rgb: torch.Tensor, patch: int) -> torch.Tensor:
-    """Mean over MPIs, patches and channels of (1 - SSIM) / 2 between each MPI's render of
-    square ray patches and the photo's, SSIM taken over each patch as one window (uniform
-    weights; constants of Wang et al. 2004 for colours in [0, 1]). A patch counts only where
-    every ray of it is covered.
-
-    Shape: target_rgb [R, 3], R a multiple of ``patch``^2, the rays of each patch consecutive.
-    """
-    c1, c2 = 0.01**2, 0.03**2
-    n = patch * patch
-    y = target_rgb.reshape(-1, n, 3)
-    mu_y, var_y = y.mean(1), y.var(1, unbiased=False)
-    terms = []
-    for o in outs:
-        x = o.rgb.reshape(-1, n, 3)
-        mu_x, var_x = x.mean(1), x.var(1, unbiased=False)
-        cov = ((x - mu_x[:, None]) * (y - mu_y[:, None])).mean(1)
-        ssim = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
-        covered = _mask(o).reshape(-1, n).min(1).values[:, None]
-        terms.append((covered * (1 - ssim) / 2).mean())
-    return torch.stack(terms).mean()
-
-
 def _pairwise(outs: Sequence[RayOutput], value) -> torch.Tensor:
     terms = [(_mask(a) * _mask(b) * value(a, b)).mean() for a, b in combinations(outs, 2)]
     return torch.stack(terms).mean() if terms else outs[0].rgb.new_zeros(())

@@ -25,7 +25,7 @@ import torch
 
 from cmc.config import LossConfig, TrainConfig
 from cmc.datasets import Scene, validate_scene
-from cmc.errors import CheckpointError, ConfigError
+from cmc.errors import CheckpointError
 from cmc.eta import TrainingETA
 from cmc.geometry import sample_virtual_pose
 from cmc.losses import (
@@ -33,7 +33,6 @@ from cmc.losses import (
     appearance_consistency,
     depth_consistency,
     distortion,
-    patch_dssim,
     reconstruction_loss,
     robust_depth_consistency,
 )
@@ -92,7 +91,6 @@ class LossTerms:
     their sum weighted by :class:`cmc.config.LossConfig` (a term whose weight is 0 is 0)."""
 
     mse: torch.Tensor  # reconstruction of every input by every MPI (paper Eq. 4.5)
-    dssim: torch.Tensor  # structural dissimilarity of those reconstructions, over ray patches
     dc_input: torch.Tensor  # depth consistency between MPIs at the input views
     ac: torch.Tensor  # appearance consistency between MPIs at unseen poses (Eq. 4.6)
     dc: torch.Tensor  # depth consistency between MPIs at unseen poses (Eq. 4.7)
@@ -104,7 +102,6 @@ class LossTerms:
     def weighted(
         lc: LossConfig,
         mse: torch.Tensor,
-        dssim: torch.Tensor,
         dc_input: torch.Tensor,
         ac: torch.Tensor,
         dc: torch.Tensor,
@@ -114,14 +111,13 @@ class LossTerms:
         """The terms and their sum weighted by ``lc``."""
         total = (
             mse
-            + lc.lambda_dssim * dssim
             + lc.lambda_dc_input * dc_input
             + lc.lambda_ac * ac
             + lc.lambda_dc * dc
             + lc.lambda_distortion * distortion
             + lc.lambda_alpha_entropy * alpha_entropy
         )
-        return LossTerms(mse, dssim, dc_input, ac, dc, distortion, alpha_entropy, total)
+        return LossTerms(mse, dc_input, ac, dc, distortion, alpha_entropy, total)
 
     def floats(self) -> dict[str, float]:
         """Every term as a float, by name (``total`` included)."""
@@ -163,23 +159,6 @@ class Trainer:
         uv = torch.stack([idx % w, idx // w], -1).float() + 0.5
         return idx, uv
 
-    def _random_patches(self, gen: torch.Generator, n: int, side: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """As :meth:`_random_pixels` with ``side`` 1; else n // side^2 random ``side`` x ``side``
-        pixel patches inside the photo, in row-major order of their corners, each patch's
-        pixels consecutive and row-major within it."""
-        if side == 1:
-            return self._random_pixels(gen, n)
-        w, h = self.scene.cameras.width, self.scene.cameras.height
-        if side > min(w, h) or n < side * side:
-            raise ConfigError(f"patch_size {side} does not fit {n} rays of a {w}x{h} photo")
-        corner = torch.randint(0, (w - side + 1) * (h - side + 1), (n // (side * side),), generator=gen).sort().values
-        x0, y0 = corner % (w - side + 1), corner // (w - side + 1)
-        dy, dx = torch.meshgrid(torch.arange(side), torch.arange(side), indexing="ij")
-        x, y = x0[:, None] + dx.reshape(1, -1), y0[:, None] + dy.reshape(1, -1)
-        idx = (y * w + x).reshape(-1).to(self.device)
-        uv = torch.stack([x.reshape(-1), y.reshape(-1)], -1).float().to(self.device) + 0.5
-        return idx, uv
-
     def _colour_grads(self, mpi: int) -> list[float]:
         """Factor on the colour gradients of MPI ``mpi`` from each input view's rays."""
         s = self.cfg.loss.cross_view_colour
@@ -195,7 +174,7 @@ class Trainer:
         # Target cameras of this step: every input view, then the unseen poses.
         groups, targets = [], []
         for j in range(len(self.scene)):
-            idx, uv = self._random_patches(gen, cfg.rays_per_view, cfg.patch_size)
+            idx, uv = self._random_pixels(gen, cfg.rays_per_view)
             groups.append((self.K[j], self.poses[j], uv))
             targets.append(self.images[j][idx])
         use_unseen = full and (lc.lambda_ac > 0 or lc.lambda_dc > 0)
@@ -230,9 +209,6 @@ class Trainer:
         return LossTerms.weighted(
             lc,
             mse=mse,
-            dssim=torch.stack([patch_dssim(by_target[j], targets[j], cfg.patch_size) for j in range(n)]).mean()
-            if lc.lambda_dssim > 0
-            else zero,
             dc_input=torch.stack([dc_loss(by_target[j]) for j in range(n)]).mean()
             if full and lc.lambda_dc_input > 0
             else zero,

@@ -169,39 +169,3 @@ def test_checkpoint_cadence_is_not_part_of_the_resume_check(scene, tmp_path):
     assert second.step == 3
     with pytest.raises(ValueError, match="different training configuration"):
         Trainer(scene, replace(cfg, lr=cfg.lr * 2)).load_checkpoint(ckpt)
-
-
-def test_ray_patches_are_whole_squares_inside_the_photo(scene):
-    """patch_size 4: 256 rays are 16 squares of 4 x 4 neighbouring pixels, each inside the photo,
-    its pixels consecutive and row-major, the indices those of the centres."""
-    trainer = Trainer(scene, tiny(patch_size=4), "cpu")
-    idx, uv = trainer._random_patches(torch.Generator().manual_seed(1), 256, 4)
-    assert idx.shape == (256,) and uv.shape == (256, 2)
-    squares = (uv - 0.5).reshape(16, 4, 4, 2)
-    corner = squares[:, :1, :1]
-    dy, dx = torch.meshgrid(torch.arange(4.0), torch.arange(4.0), indexing="ij")
-    torch.testing.assert_close(squares - corner, torch.stack([dx, dy], -1).expand(16, 4, 4, 2))
-    assert (squares[..., 0] < W).all() and (squares[..., 1] < H).all() and (squares >= 0).all()
-    torch.testing.assert_close(idx.float(), (uv[:, 1] - 0.5) * W + uv[:, 0] - 0.5)
-
-
-def test_patch_dssim_is_zero_for_the_photo_and_grows_with_blur():
-    """(1 - SSIM) / 2 over 8 x 8 patches: 0 for an exact render; a blurred render scores worse
-    than the same render with a constant offset of the same mean squared error (SSIM weighs
-    structure, the squared error does not)."""
-    from cmc.losses import patch_dssim
-    from cmc.rendering import RayOutput
-
-    g = torch.Generator().manual_seed(0)
-    photo = torch.rand(32, 8, 8, 3, generator=g)
-    blurred = photo.mean((1, 2), keepdim=True) * 0.5 + photo * 0.5
-    mse = float(((blurred - photo) ** 2).mean())
-    shifted = (photo + mse**0.5).clamp(0, 1)
-
-    def out(rgb):
-        rgb = rgb.reshape(-1, 3)
-        return RayOutput(rgb=rgb, depth=torch.ones(len(rgb)), acc=torch.ones(len(rgb)))
-
-    target = photo.reshape(-1, 3)
-    assert float(patch_dssim([out(photo)], target, 8)) < 1e-6
-    assert float(patch_dssim([out(blurred)], target, 8)) > 5 * float(patch_dssim([out(shifted)], target, 8))
