@@ -16,7 +16,11 @@ HERE = Path(__file__).resolve().parent
 # The current report of each kind. A new measurement of today's preset replaces its entry here.
 SCENE_REPORTS = {s: f"scenes_{s}_test_sgm2_steps300.json" for s in ("fern", "room", "trex")}
 SYNTHETIC_REPORT = "view_quality_synthetic_sgm2_steps300.json"
-POSE_REPORTS = {"fern": "poses_e2e.json", "room": "poses_e2e_room_sift.json", "trex": "poses_e2e_trex_exif_model.json"}
+POSE_REPORTS = {
+    "fern": "poses_e2e_fern_model.json",
+    "room": "poses_e2e_room_wide.json",
+    "trex": "poses_e2e_trex_exif_wide.json",
+}
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 PROFILE_REPORT = "profile_job_fern_cpu.json"
 BUILD_REPORT = "model_build_time_fern.json"

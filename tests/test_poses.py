@@ -33,6 +33,7 @@ from cmc.poses import (
     poses_from_client,
     triangulate_pair,
 )
+from cmc.poses.bounds import NEAR_FAR_MARGINS
 from cmc.poses.intake import SIFT_FULL_SIZE, sift_peak_threshold
 
 pycolmap = pytest.importorskip("pycolmap")
@@ -201,7 +202,9 @@ def test_triangulate_pair_recovers_points() -> None:
 def test_depth_range() -> None:
     z = np.concatenate([np.linspace(2.0, 6.0, 1000), [0.01, 500.0, -3.0, np.nan]])  # outliers, behind, NaN
     near, far = depth_range(z)
-    assert 0.9 * 1.9 < near < 0.9 * 2.1 and 1.1 * 5.9 < far < 1.1 * 6.1
+    m_near, m_far = NEAR_FAR_MARGINS
+    assert m_near * 1.9 < near < m_near * 2.1 and m_far * 5.9 < far < m_far * 6.1
+    assert m_near <= 0.25 and m_far >= 4  # room's nearest surfaces lie 2.5x nearer than its SfM points
     with pytest.raises(PoseEstimationError, match="only 3 3D points are seen from IMG_1"):
         depth_range(np.array([1.0, 2.0, 3.0]), "IMG_1")
 
@@ -221,9 +224,9 @@ def test_sfm_recovers_known_cameras(scene, tmp_path: Path) -> None:
     assert est.K[0, 0, 0] == pytest.approx(cams.K[0, 0, 0], rel=0.01)  # the EXIF prior, kept
     # depths: scale the similarity away with the camera baseline, then compare with the layers' z
     scale = np.linalg.norm(np.diff(cams.centers[[0, 2]], axis=0)) / np.linalg.norm(np.diff(est.centers[[0, 2]], axis=0))
-    nf = result.camera_file.near_far * scale
-    assert (nf[:, 0] < 2.0).all() and (nf[:, 0] > 1.0).all(), nf
-    assert (nf[:, 1] > 6.0).all() and (nf[:, 1] < 9.0).all(), nf
+    nf = result.camera_file.near_far * scale / NEAR_FAR_MARGINS  # the points' own depth range
+    assert (nf[:, 0] > 1.1).all() and (nf[:, 0] < 2.2).all(), nf  # the nearest layer: z = 2
+    assert (nf[:, 1] > 5.5).all() and (nf[:, 1] < 8.2).all(), nf  # the farthest: z = 6
     assert {"intake", "features", "matching", "mapping", "near_far", "write", "total"} <= set(result.timings)
     assert result.stats["registered"] == 3 and result.stats["focal_prior"] == ["35mm-equivalent"] * 3
     # the sparse points: each lands where its photos observed it (working resolution), and mapped
@@ -376,8 +379,9 @@ def test_client_poses_triangulate_near_far_and_round_trip(scene, tmp_path: Path)
     out = result.camera_file
     np.testing.assert_allclose(out.cameras.world_from_cam, cams.world_from_cam, atol=1e-12)
     np.testing.assert_allclose(out.cameras.K, cams.scaled(160, 120).K, atol=1e-9)
-    assert (out.near_far[:, 0] > 1.0).all() and (out.near_far[:, 0] < 2.0).all(), out.near_far
-    assert (out.near_far[:, 1] > 6.0).all() and (out.near_far[:, 1] < 9.0).all(), out.near_far
+    points_range = out.near_far / NEAR_FAR_MARGINS  # the layers lie at z = 2, 3.2 and 6
+    assert (points_range[:, 0] > 1.1).all() and (points_range[:, 0] < 2.2).all(), out.near_far
+    assert (points_range[:, 1] > 5.5).all() and (points_range[:, 1] < 8.2).all(), out.near_far
     assert result.stats["consistent_matches"] > 0.9 * result.stats["matches"]
     assert "triangulation" in result.timings
     # what we return can be sent back: same photos + our cameras.json -> same cameras, near/far kept
@@ -518,4 +522,5 @@ def test_fern_full_resolution_jpegs(tmp_path: Path) -> None:
     # client path with the dataset's poses: triangulated near/far in the dataset's units
     data = camera_file_to_dict(CameraFile(truth, [p.name for p in photos]))
     client = poses_from_client(photos, data, tmp_path / "client", max_sift_size=800, keep_originals=False)
-    np.testing.assert_allclose(client.camera_file.near_far, bounds * [0.9, 1.1], rtol=0.15)
+    # (the points' own depth range against LLFF's, both from COLMAP points' depth percentiles)
+    np.testing.assert_allclose(client.camera_file.near_far / NEAR_FAR_MARGINS, bounds, rtol=0.15)

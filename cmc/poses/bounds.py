@@ -14,15 +14,19 @@ from cmc.poses.intake import Matches, Photos
 from cmc.poses.options import SUGGESTION, SparsePoints
 
 NEAR_FAR_PERCENTILES = (0.5, 99.5)  # robust extremes of the per-view point depths ...
-NEAR_FAR_MARGINS = (0.9, 1.1)  # ... widened by these factors so the MPI planes cover the scene
+# ... widened by these factors: the few hundred points of a few photos miss the scene's nearest
+# and farthest surfaces (room's nearest lie 2.5x nearer than its SfM points'), and the model
+# fits its planes to where its plane sweep finds the scene within these bounds
+# (ModelConfig.fit_depth_range), which a near bound 4x too close does not disturb.
+NEAR_FAR_MARGINS = (0.25, 4.0)
 MIN_POINTS_PER_VIEW = 8
 
 
 def depth_range(depths: np.ndarray, name: str = "view") -> tuple[float, float]:
     """(near, far) covering the positive camera-z ``depths`` [P] of one view's 3D points.
 
-    Robust percentiles (:data:`NEAR_FAR_PERCENTILES`) widened by :data:`NEAR_FAR_MARGINS`, as
-    LLFF derives its bounds; raises PoseEstimationError with fewer than MIN_POINTS_PER_VIEW points.
+    Robust percentiles (:data:`NEAR_FAR_PERCENTILES`) widened by :data:`NEAR_FAR_MARGINS`; raises
+    PoseEstimationError with fewer than MIN_POINTS_PER_VIEW points.
     """
     z = np.asarray(depths, dtype=np.float64)
     z = z[np.isfinite(z) & (z > 0)]
