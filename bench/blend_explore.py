@@ -28,13 +28,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from cmc.baking import MANIFEST, BakedScene, bake
-from cmc.bench import report_header
 from cmc.config import preset_config
-from cmc.datasets import load_llff
-from cmc.metrics import LPIPS, psnr, ssim
-from cmc.rendering import RayOutput, blend_selection, render_texture_image
-from cmc.training import Trainer
+from cmc.data.datasets import load_llff
+from cmc.eval.bench import report_header
+from cmc.eval.metrics import LPIPS, psnr, ssim
+from cmc.method.training import Trainer
+from cmc.mpi.rendering import RayOutput, blend_selection, render_texture_image
+from cmc.serving.baking import MANIFEST, BakedScene, bake
 
 
 def seen_maps(rgba: torch.Tensor, margin: float) -> torch.Tensor:
@@ -60,7 +60,7 @@ def per_mpi_renders(
     weights, _ = blend_selection(baked.frames, P_t)
     outs, seen = [], []
     for f, frame in zip(baked.fields, baked.frames, strict=True):
-        bicubic = f.colour_interpolation == "bicubic"  # as cmc.rendering.render_image samples colour
+        bicubic = f.colour_interpolation == "bicubic"  # as cmc.mpi.rendering.render_image samples colour
         straight = f.rgba[:, :3] if bicubic else None
         outs.append(
             render_texture_image(f.premultiplied, frame, K_t, P_t, baked.width, baked.height, straight_rgb=straight)
@@ -75,7 +75,7 @@ def per_mpi_renders(
 
 def blend_with(outs: list[RayOutput], weights: torch.Tensor, extra: list[torch.Tensor]) -> torch.Tensor:
     """Colour [R, 3]: ``sum_i w_i e_i C_i / sum_i w_i e_i a_i`` times the largest coverage, with
-    per-ray factors ``e_i`` (all 1: :func:`cmc.rendering.blend`)."""
+    per-ray factors ``e_i`` (all 1: :func:`cmc.mpi.rendering.blend`)."""
     acc_all = torch.stack([o.acc for o in outs])
     W = torch.stack([weights[i] * extra[i] for i in range(len(outs))])  # [N, R]
     total = (acc_all * W).sum(0).clamp_min(1e-8)

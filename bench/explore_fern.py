@@ -12,9 +12,9 @@ import time
 from dataclasses import replace
 
 from cmc.config import preset_config
-from cmc.datasets import load_llff
-from cmc.metrics import LPIPS, psnr, ssim
-from cmc.training import Trainer
+from cmc.data.datasets import load_llff
+from cmc.eval.metrics import LPIPS, psnr, ssim
+from cmc.method.training import Trainer
 
 name, ov = sys.argv[1], json.loads(sys.argv[2])
 split = load_llff("../shared/datasets/llff/fern")

@@ -1,11 +1,11 @@
 """Many `fast` variants at once on a lent GPU, chosen on views that are neither train nor test.
 
-Each real LLFF scene's RegNeRF split (``cmc.datasets.load_llff``) trains on three images and tests
+Each real LLFF scene's RegNeRF split (``cmc.data.datasets.load_llff``) trains on three images and tests
 on every 8th; the rest are *validation* views: a setting is judged on them (and on the synthetic
 set, which is ours), never on the test views. The test views are scored too, only to see
 afterwards whether validation predicted them; a variant is adopted only after the CPU benchmark
 (`cmc bench`) confirms it. Validation views are also scored with the MPIs blended by inverse
-distance to the power ``--blend-powers`` (the renderer's is 2; ``cmc.geometry.blend_weights``),
+distance to the power ``--blend-powers`` (the renderer's is 2; ``cmc.geometry.planes.blend_weights``),
 without retraining.
 
 Usage (repository root; data as in bench/gpu_run.sh):
@@ -36,13 +36,13 @@ import numpy as np
 def _run(task: tuple[str, list[str], str, dict[str, Any]]) -> dict[str, Any]:
     import torch
 
-    import cmc.rendering
-    from cmc.baking import BakedScene, bake
-    from cmc.bench import report_header
+    import cmc.mpi.rendering
     from cmc.config import preset_config, with_settings
-    from cmc.datasets import WIDE_SCENES, load_llff, wide_baseline_split
-    from cmc.metrics import LPIPS, psnr, ssim
-    from cmc.training import Trainer
+    from cmc.data.datasets import WIDE_SCENES, load_llff, wide_baseline_split
+    from cmc.eval.bench import report_header
+    from cmc.eval.metrics import LPIPS, psnr, ssim
+    from cmc.method.training import Trainer
+    from cmc.serving.baking import BakedScene, bake
 
     name, settings, scene, opts = task
     torch.set_num_threads(2)
@@ -72,7 +72,7 @@ def _run(task: tuple[str, list[str], str, dict[str, Any]]) -> dict[str, Any]:
         "train_s": round(train_s, 1),
         **{k: header[k] for k in ("device", "git_commit", "date")},
     }
-    blend_weights = cmc.rendering.blend_weights
+    blend_weights = cmc.mpi.rendering.blend_weights
 
     def score(baked: BakedScene, views: Any) -> list[dict[str, Any]]:
         per_view = []
@@ -104,11 +104,11 @@ def _run(task: tuple[str, list[str], str, dict[str, Any]]) -> dict[str, Any]:
             for power in opts.get("blend_powers", []):
                 if power == 2:
                     continue
-                cmc.rendering.blend_weights = _powered(blend_weights, power)
+                cmc.mpi.rendering.blend_weights = _powered(blend_weights, power)
                 try:
                     rec[f"val_blend{power:g}"] = mean(score(baked, views))
                 finally:
-                    cmc.rendering.blend_weights = blend_weights
+                    cmc.mpi.rendering.blend_weights = blend_weights
     return rec
 
 

@@ -26,11 +26,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cmc.baking import BakedScene
-from cmc.bench import git_commit
-from cmc.datasets import load_llff, regnerf_split
-from cmc.geometry import mean_baseline
-from cmc.metrics import image_metrics
+from cmc.data.datasets import load_llff, regnerf_split
+from cmc.eval.bench import git_commit
+from cmc.eval.metrics import image_metrics
+from cmc.geometry.planes import mean_baseline
+from cmc.serving.baking import BakedScene
 
 # Distance bins, in mean input baselines (mean distance between the three input cameras).
 BINS = ((0.0, 0.75), (0.75, 1.5), (1.5, float("inf")))

@@ -48,8 +48,8 @@ import sys, time
 from pathlib import Path
 import torch
 from cmc.config import preset_config
-from cmc.datasets import load_llff
-from cmc.training import Trainer
+from cmc.data.datasets import load_llff
+from cmc.method.training import Trainer
 
 left, out = float(sys.argv[1]), sys.argv[2]
 cfg = preset_config("paper")

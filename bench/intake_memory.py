@@ -2,7 +2,7 @@
 
 Worst-case upload: three photos of one flat colour at exactly ``CMC_MAX_IMAGE_PIXELS`` (the
 default 50,000,000: 8000 x 6250), a few hundred KB each however many pixels they hold, in the
-two formats that cost the most memory to decode per pixel (``cmc.images.decode_bytes``): PNG
+two formats that cost the most memory to decode per pixel (``cmc.data.images.decode_bytes``): PNG
 with alpha (8 bytes per pixel) and WebP (16). Each upload is one ``POST /v1/scenes`` with its
 own three files; N of them are sent at once from N threads.
 

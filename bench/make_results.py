@@ -92,7 +92,7 @@ PLANES80_LABEL = (
     "against issue 10's 200 MB. The sweep's confidence gate and its SGM step penalty count planes, not disparity: at "
     "80 planes the confident share of `slanted` falls from 0.73 to 0.45)"
 )
-# The training of the 4096-rays row, baked with alpha under 1 % stored as 0 (cmc.baking.ALPHA_FLOOR);
+# The training of the 4096-rays row, baked with alpha under 1 % stored as 0 (cmc.serving.baking.ALPHA_FLOOR);
 # the two reports of the bake-floor section of issue 10.
 FLOOR_FERN_AFTER = "view_quality_fern_floor.json"
 FLOOR_SYN_AFTER = "view_quality_synthetic_floor.json"
@@ -108,7 +108,7 @@ CVC_LABEL = (
     "(`loss.cross_view_colour=0.25`)"
 )
 FLOOR_LABEL = (
-    "the previous `fast`: the same training, baked with alpha under 1 % stored as 0 (`cmc.baking.ALPHA_FLOOR`; "
+    "the previous `fast`: the same training, baked with alpha under 1 % stored as 0 (`cmc.serving.baking.ALPHA_FLOOR`; "
     'baked renders 1.29x faster: section "Serving cost (issue 10): faint alpha cleared at bake time")'
 )
 HCOLOUR_LABEL = (
@@ -234,7 +234,7 @@ EVERY_VIEW = [
     ),
 ]
 BG4_LABEL = "the previous `fast`: + a base colour per group of 12 planes (`model.pyramid.base_groups=4`)"
-ENTROPY_LABEL = "the previous `fast`: + alpha entropy prior 0.01 (`cmc.losses.alpha_entropy`)"
+ENTROPY_LABEL = "the previous `fast`: + alpha entropy prior 0.01 (`cmc.method.losses.alpha_entropy`)"
 S600_CUBIC_LABEL = (
     "`fast` now with 600 steps instead of 400 (not adopted: fern -0.07 dB, SSIM -0.002, LPIPS-vgg -0.002, which "
     "meets <= 0.22 by 0.0003; synthetic halfway +0.05 dB, near -0.02 dB, beyond -0.05 dB, LPIPS the same; 1.35x "
@@ -868,7 +868,7 @@ def view_quality_section() -> list[str]:
         ]
         gain = {k: sa["mean"][k]["psnr"] - sb["mean"][k]["psnr"] for k in ("halfway", "near")}
         out += [
-            "Wide-baseline synthetic scenes (`cmc.datasets.WIDE_SCENES`: `cards`, two overlapping cards "
+            "Wide-baseline synthetic scenes (`cmc.data.datasets.WIDE_SCENES`: `cards`, two overlapping cards "
             "before a wall; `posts`, five thin posts before a card and a wall; `slanted`, a slanted wall, a "
             "floor and a tilted card), 252x189, three input cameras in a triangle 0.6 units wide (nearest "
             "surface at ~2 units). Test views: the three midpoints of input pairs (halfway) and each input "
@@ -1019,7 +1019,7 @@ def train_step_section() -> list[str]:
         "## Training time: the compiled texture sampler\n",
         "A training step of fern spent about half its time in torch's `grid_sample` on the CPU, most of it in the "
         "backward pass, which allocated and zeroed a gradient the size of each texture per call. "
-        "`cmc.plane_sampling` samples the plane textures and scatters their gradients with numba, split over "
+        "`cmc.mpi.plane_sampling` samples the plane textures and scatters their gradients with numba, split over "
         "threads by whole textures, on the OpenMP threads torch's ops use; each view's random pixels are sorted, "
         "so neighbouring rays sample neighbouring texels. Same values (forward identical to `grid_sample`, "
         "gradients within 1e-7 relative), other float rounding of the sums. Median seconds per step, "
@@ -1200,7 +1200,7 @@ def exposure_section() -> list[str]:
         "Phones set exposure and white balance per shot. `cmc bench synthetic --input-gains` multiplies each "
         "input photo's colours by a factor (clipped to [0, 1]); the test views keep the scene's own colours. "
         "`model.exposure_compensation` learns each photo's colour response (gain and offset per channel) so "
-        "that an MPI meets another photo in that photo's response (`cmc.model.ExposureResponse`), and renders "
+        "that an MPI meets another photo in that photo's response (`cmc.method.model.ExposureResponse`), and renders "
         "and bakes show every MPI in the mean response of the photos. Depth: median relative depth error. "
         "The first build (second row) kept each MPI in its own photo's response: the geometry was as good, but a "
         "view near an input showed that input's exposure, 1.15 or 0.87 times the truth's.  ",
@@ -1543,7 +1543,7 @@ def main() -> None:
         out += [
             "## The plane sweep alone, by cost and grid (issue 14)\n",
             "`bench/sweep_accuracy.py` scores the plane sweep that starts every MPI of `fast` "
-            "(`cmc.planesweep.plane_sweep_weights`, the preset's window, edge weights and texel grid; the "
+            "(`cmc.method.planesweep.plane_sweep_weights`, the preset's window, edge weights and texel grid; the "
             "lower of the two other views' costs unless said otherwise), before any training, against depth it "
             "never saw: on the synthetic scenes the exact "
             "depth at every other pixel of each input view; on fern the SfM points of `sparse/0` that each input "
@@ -1620,11 +1620,11 @@ def main() -> None:
             "`estimate_poses` found from the full-resolution JPEGs. The held-out views' dataset poses are "
             "registered into frame (b) through the two reconstructions' 3D points: our SfM points and the "
             "dataset's sparse points seen at the same pixels of the three shared photos correspond "
-            "(`cmc.alignment.corresponding_points`); each held-out camera is the pose that sees our points where "
-            "the dataset's camera sees the corresponding dataset points (`cmc.alignment.register_camera`). No "
+            "(`cmc.eval.alignment.corresponding_points`); each held-out camera is the pose that sees our points where "
+            "the dataset's camera sees the corresponding dataset points (`cmc.eval.alignment.register_camera`). No "
             "held-out pixel is used. For comparison, `similarity` registers them with one similarity from the "
-            "three training cameras (`cmc.alignment.similarity_from_cameras`). Both runs render with the dataset's "
-            "intrinsics. Method and caveats: `bench/poses_e2e.md`.\n",
+            "three training cameras (`cmc.eval.alignment.similarity_from_cameras`). Both runs render with the "
+            "dataset's intrinsics. Method and caveats: `bench/poses_e2e.md`.\n",
             f"- pose estimation: {e2e['pose_estimation']['wall_seconds']:.1f} s",
             f"- correspondences: {st['corresponding_points']} of {st['sfm_points']} SfM points "
             f"(dataset model: {st['dataset_points']} points); registration inliers per held-out view "
@@ -1667,7 +1667,7 @@ def main() -> None:
             f"timed alternately in one process, {speed['repeats_per_view']} renders per view after a warm-up. "
             f"Render cost does not depend on training (a {sc['train_steps']}-step and a 400-step bake timed the "
             "same).\n",
-            f"Command: `{speed['command']}` (the before-file is `git show 1ebbebd:cmc/rendering.py`)  \n"
+            f"Command: `{speed['command']}` (the before-file is `git show 1ebbebd:cmc/mpi/rendering.py`)  \n"
             f"Machine: {speed['machine']['cpu']}, {speed['machine']['cores']} cores, torch "
             f"{speed['torch']} with {speed['machine']['torch_threads']} threads. Date: {speed['date'][:10]}; "
             f"git commit {speed['git_commit']}.\n",
@@ -1686,13 +1686,13 @@ def main() -> None:
         out += [
             "## Serving cost (issue 10): 8-bit textures in memory, compiled CPU renderer\n",
             "`BakedScene` keeps only the 8-bit textures of the atlases and renders them on the CPU with "
-            "`cmc.texture_kernel` (numba: empty-tile skipping, early ray termination at transmittance 1e-4); "
-            "before, it kept two float32 copies and rendered with torch (`cmc.rendering.render_image`). "
+            "`cmc.serving.texture_kernel` (numba: empty-tile skipping, early ray termination at transmittance 1e-4); "
+            "before, it kept two float32 copies and rendered with torch (`cmc.mpi.rendering.render_image`). "
             f"Fern baked from a full `fast` run ({sc['mpis']} MPIs x {sc['planes_per_mpi']} planes, textures "
             f"{sc['tile'][1]}x{sc['tile'][0]}), rendered at {sc['render_size'][0]}x{sc['render_size'][1]} at the "
             "held-out views 0, 8, 16 and the input views 1, 10, 19, both renderers timed alternately in one "
             f"process, {kern['repeats_per_view']} renders per view after a warm-up.\n",
-            f"Command: `{kern['command']}` (the before-file is `git show 8bdeb3b:cmc/rendering.py`; the bake "
+            f"Command: `{kern['command']}` (the before-file is `git show 8bdeb3b:cmc/mpi/rendering.py`; the bake "
             "is from `cmc bench llff ... --save-dir /tmp/runs/now` with `fast`, scoring as the `fast` row above)  \n"
             f"Machine: {kern['machine']['cpu']}, {kern['machine']['cores']} cores, torch "
             f"{kern['torch']} with {kern['machine']['torch_threads']} threads. Date: {kern['date'][:10]}; "
@@ -1719,8 +1719,8 @@ def main() -> None:
         per_view = per_view_times(bands, before)
         out += [
             "## Serving cost (issue 10): baked render speed\n",
-            "`cmc.texture_kernel` now packs every plane of every MPI into one buffer of 32-bit RGBA words framed "
-            "by a transparent texel (a bilinear sample is four loads, no clamps), renders bands of target rows "
+            "`cmc.serving.texture_kernel` now packs every plane of every MPI into one buffer of 32-bit RGBA words "
+            "framed by a transparent texel (a bilinear sample is four loads, no clamps), renders bands of target rows "
             "plane by plane over the band's live rays only (rays leave the list when opaque; each ray visits only "
             "the planes on its side of the target centre), blends the MPIs in the kernel, and takes a thread "
             "count per render. Before: the kernel of the section above (one call per MPI, numba's own threads, "
@@ -1729,7 +1729,7 @@ def main() -> None:
             f"{sc.get('train_steps', 400)} steps), rendered at {sc['render_size'][0]}x{sc['render_size'][1]}, "
             f"both timed alternately in one process, {bands['repeats_per_view']} renders per view after a "
             f"warm-up, {bands['threads']} threads per render (both).\n",
-            f"Command: `{bands['command']}` (the before-file is `git show 2b42c9d:cmc/texture_kernel.py`)  \n"
+            f"Command: `{bands['command']}` (the before-file is `git show 2b42c9d:cmc/serving/texture_kernel.py`)  \n"
             f"Machine: {bands['machine']['cpu']}, {bands['machine']['cores']} cores, shared: another engineer's "
             f"CPU training ran at the same time, so absolute times are pessimistic and only the ratio of the "
             f"alternated renders is fair. Date: {bands['date'][:10]}; git commit {bands['git_commit']}.\n",
@@ -1742,7 +1742,7 @@ def main() -> None:
             "about 14 million bilinear RGBA samples (3 MPIs x 190,000 pixels x 25) that no exact skipping "
             "removes: raising the termination threshold tenfold (1e-3) saves a tenth of them, and at the "
             "held-out views every MPI weighs 0.17 or more, so none can be culled",
-            f"- vs the torch renderer (`cmc.rendering.render_image`, the quality numbers' renderer): colour "
+            f"- vs the torch renderer (`cmc.mpi.rendering.render_image`, the quality numbers' renderer): colour "
             f"PSNR >= {torch_psnr:.0f} dB, depth max relative difference {torch_depth:.1e} over all six views "
             f"(views {held_out} held out; "
             "targets >= 45 dB, <= 1e-3); vs the kernel before: PSNR >= "
@@ -1758,7 +1758,7 @@ def main() -> None:
             "## Serving cost (issue 10): the bake of today's `fast` preset\n",
             "The renderer of the section above, on a bake of the `fast` preset with the alpha entropy prior "
             "(issue 14: rays turn opaque sooner, so fewer samples are taken), against the torch renderer the "
-            "issue measured (`git show 8bdeb3b:cmc/rendering.py`), both timed alternately in one process, "
+            "issue measured (`git show 8bdeb3b:cmc/mpi/rendering.py`), both timed alternately in one process, "
             f"{ent['repeats_per_view']} renders per view after a warm-up, {ent['threads']} threads per render "
             f"({sc['mpis']} MPIs x {sc['planes_per_mpi']} planes, textures {sc['tile'][1]}x{sc['tile'][0]}, "
             f"rendered at {sc['render_size'][0]}x{sc['render_size'][1]}; the bake is the `fast now` rerun of "
@@ -1784,19 +1784,19 @@ def main() -> None:
         met = "meets" if after["median_ms"] <= 50 else "misses"
         out += [
             "## Serving cost (issue 10): empty blocks skipped, samples in two loops\n",
-            "`cmc.texture_kernel` now takes a band's rays in blocks of 8 x 8 pixels and skips a plane for a "
+            "`cmc.serving.texture_kernel` now takes a band's rays in blocks of 8 x 8 pixels and skips a plane for a "
             "whole block when the texels its rays can sample (a box: the map to the plane is affine) hold no "
             "occupied 8x8 tile (a summed-area table of the occupancy: four loads); a reach bit per texel then "
             "drops each sample whose four taps are transparent; a first loop collects the rays with alpha "
             "without branching on it and a second samples them without data-dependent branches, so the CPU "
             "overlaps the rays' samples. All of it exact. Before: the kernel of the section above "
-            "(`git show 8944de5:cmc/texture_kernel.py`), on a bake of today's `fast` preset on fern "
+            "(`git show 8944de5:cmc/serving/texture_kernel.py`), on a bake of today's `fast` preset on fern "
             f"(`cmc bench llff ... --save-dir /tmp/x/save_fern_base`; {sc['mpis']} MPIs x {sc['planes_per_mpi']} "
             f"planes, textures {sc['tile'][1]}x{sc['tile'][0]}, "
             f"rendered at {sc['render_size'][0]}x{sc['render_size'][1]}), both timed alternately in one "
             f"process, {blocks['repeats_per_view']} renders per view after a warm-up, {blocks['threads']} "
             "threads per render (both).\n",
-            f"Command: `{blocks['command']}` (the before-file is `git show 8944de5:cmc/texture_kernel.py`)  \n"
+            f"Command: `{blocks['command']}` (the before-file is `git show 8944de5:cmc/serving/texture_kernel.py`)  \n"
             f"Machine: {blocks['machine']['cpu']}, {blocks['machine']['cores']} cores, torch "
             f"{blocks['torch']}, nothing else running. Date: {blocks['date'][:10]}; git commit "
             f"{blocks['git_commit']}.\n",
@@ -1836,7 +1836,7 @@ def main() -> None:
             "Training leaves alpha of 1-3 (8-bit counts) on a fifth of fern's texels, where the alpha entropy "
             "prior does not reach (behind surfaces, where no input looks); each such texel makes the kernel take "
             "a sample. The bake now stores alpha of 2 or less (under 1 % opacity) as 0 "
-            "(`cmc.baking.ALPHA_FLOOR`). The renderer is unchanged; this times it on the new bake against the "
+            "(`cmc.serving.baking.ALPHA_FLOOR`). The renderer is unchanged; this times it on the new bake against the "
             "bake of the same training without the floor (the view-quality section's rows of 4096 rays and "
             "of the bake floor), alternately in one process, "
             f"{floor['repeats_per_view']} renders per view after a warm-up, {floor['threads']} threads per "

@@ -1,5 +1,5 @@
 """Seconds to build the `fast` model of an LLFF scene (the plane sweeps before the first training
-step), with the sweep's compiled CPU kernels (cmc/sweep_kernel.py) and with their torch twins,
+step), with the sweep's compiled CPU kernels (cmc/method/sweep_kernel.py) and with their torch twins,
 alternating, so both are measured under the same load. The two builds give the same model to the
 bit (checked here on the alpha of every MPI).
 
@@ -25,11 +25,11 @@ from pathlib import Path
 
 import torch
 
-import cmc.planesweep as planesweep
-from cmc.bench import git_commit
+import cmc.method.planesweep as planesweep
 from cmc.config import preset_config
-from cmc.datasets import load_llff
-from cmc.model import CMCModel
+from cmc.data.datasets import load_llff
+from cmc.eval.bench import git_commit
+from cmc.method.model import CMCModel
 
 
 @contextlib.contextmanager

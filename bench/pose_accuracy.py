@@ -28,10 +28,10 @@ from PIL import Image
 
 from bench.poses_e2e import alignment, with_exif_focal
 from bench.scoreboard import pose_accuracy_table
-from cmc.bench import git_commit
-from cmc.cameras import cameras_from_llff
-from cmc.datasets import load_llff
+from cmc.data.datasets import load_llff
 from cmc.errors import PoseEstimationError
+from cmc.eval.bench import git_commit
+from cmc.geometry.cameras import cameras_from_llff
 from cmc.poses import estimate_poses
 
 

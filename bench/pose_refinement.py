@@ -24,12 +24,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cmc.baking import BakedScene, bake
-from cmc.bench import git_commit, score_views
 from cmc.config import preset_config, with_settings
-from cmc.datasets import load_llff
-from cmc.geometry import mean_baseline
-from cmc.training import Trainer
+from cmc.data.datasets import load_llff
+from cmc.eval.bench import git_commit, score_views
+from cmc.geometry.planes import mean_baseline
+from cmc.method.training import Trainer
+from cmc.serving.baking import BakedScene, bake
 
 
 def rotation(axis: np.ndarray, deg: float) -> np.ndarray:

@@ -17,17 +17,17 @@ ways of aligning the two reconstructions are scored, neither looks at a held-out
   through the 3D points. The dataset ships its sparse model
   (``sparse/0``: points and its SIMPLE_RADIAL camera). Our SfM points and the dataset's points that
   the three shared photos see at the same pixels are the same scene points
-  (:func:`cmc.alignment.corresponding_points`; dataset points projected with the dataset's poses and
+  (:func:`cmc.eval.alignment.corresponding_points`; dataset points projected with the dataset's poses and
   its distortion, ours where SfM observed them). A held-out view sees each dataset point where the
   dataset's pose and camera project it; its pose in frame (b) is the camera that sees the
-  corresponding points of (b) at those pixels (:func:`cmc.alignment.register_camera`, LO-RANSAC P3P +
+  corresponding points of (b) at those pixels (:func:`cmc.eval.alignment.register_camera`, LO-RANSAC P3P +
   refinement), as SfM would register that photo into (b) with perfect matches. Control: the same
   procedure on the training views must give back (b)'s own SfM poses.
 * ``sfm`` (the target's number where the scene has no sparse model): each held-out photo is
   registered by SfM beside the three training photos, and carried into frame (b) by the similarity
   of the three shared cameras (:func:`register_by_sfm`), as a user uploading it would get it.
 * ``similarity``: one similarity from the three training cameras
-  (:func:`cmc.alignment.similarity_from_cameras`: rotation = chordal mean of ``R_gt_i R_est_i^T``,
+  (:func:`cmc.eval.alignment.similarity_from_cameras`: rotation = chordal mean of ``R_gt_i R_est_i^T``,
   scale = ratio of the RMS centre spreads, translation from the centroids), applied as a pose
   transform (centre: scaled, rotated and shifted; orientation: rotated only).
 
@@ -67,25 +67,25 @@ import numpy as np
 import torch
 from PIL import ExifTags, Image
 
-from cmc.alignment import (
+from cmc.config import preset_config, with_settings
+from cmc.data.datasets import LLFFSplit, Scene, load_image, load_llff, save_image
+from cmc.data.images import FULL_FRAME_DIAGONAL_MM
+from cmc.errors import PoseEstimationError
+from cmc.eval.alignment import (
     apply_similarity_to_poses,
     corresponding_points,
     invert_similarity,
     register_camera,
     similarity_from_cameras,
 )
-from cmc.baking import MANIFEST, BakedScene, bake
-from cmc.bench import git_commit
-from cmc.cameras import Cameras
-from cmc.config import preset_config, with_settings
-from cmc.datasets import LLFFSplit, Scene, load_image, load_llff, save_image
-from cmc.errors import PoseEstimationError
-from cmc.geometry import mean_baseline
-from cmc.images import FULL_FRAME_DIAGONAL_MM
-from cmc.metrics import image_metrics
+from cmc.eval.bench import git_commit
+from cmc.eval.metrics import image_metrics
+from cmc.geometry.cameras import Cameras
+from cmc.geometry.planes import mean_baseline
+from cmc.method.training import Trainer
 from cmc.poses import PoseResult, estimate_poses, read_colmap_cameras, read_colmap_points
 from cmc.poses.colmap import import_pycolmap
-from cmc.training import Trainer
+from cmc.serving.baking import MANIFEST, BakedScene, bake
 
 METRICS = ("psnr", "ssim", "lpips_alex", "lpips_vgg")
 
@@ -229,7 +229,7 @@ def with_exif_focal(paths: list[Path], focal_px: float, folder: Path) -> list[Pa
             continue
         with Image.open(path) as im:
             exif = Image.Exif()
-            f35 = focal_px * FULL_FRAME_DIAGONAL_MM / math.hypot(*im.size)  # as cmc.images.exif_focal_px reads it
+            f35 = focal_px * FULL_FRAME_DIAGONAL_MM / math.hypot(*im.size)  # as cmc.data.images.exif_focal_px reads it
             exif[ExifTags.Base.FocalLengthIn35mmFilm] = round(f35)
             folder.mkdir(parents=True, exist_ok=True)
             im.save(folder / path.name, exif=exif)
@@ -412,7 +412,7 @@ def register_to_model(
     """Pose of the photo ``target`` in the frame of the model ``baked``, as a photo is registered
     into a reconstruction: SIFT matches between the photo and the model's own render at ``pose``,
     the render's keypoints lifted to 3D by its depth (where its coverage is full and the depth
-    smooth), and LO-RANSAC P3P on those (:func:`cmc.alignment.register_camera`); repeated from the
+    smooth), and LO-RANSAC P3P on those (:func:`cmc.eval.alignment.register_camera`); repeated from the
     new pose ``rounds`` times. Unlike :func:`refine_test_pose`'s local search it recovers offsets of
     many pixels. Uses the held-out image: a diagnostic of the reconstruction, not of the protocol."""
     kp_t, d_t = _sift(target)

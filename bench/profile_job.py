@@ -2,13 +2,13 @@
 
 Stages, each timed with the device synchronised at its ends:
   * ``model build``: ``Trainer(...)``, split into the plane sweeps that place the planes and fit
-    the depth range (``cmc.model.sweep_statistics``, the sweeps it runs included), the sweeps
-    that set each MPI's initial alpha (``cmc.model.sweep_probabilities`` called on its own) and
+    the depth range (``cmc.method.model.sweep_statistics``, the sweeps it runs included), the sweeps
+    that set each MPI's initial alpha (``cmc.method.model.sweep_probabilities`` called on its own) and
     the rest;
   * ``train``: every step of ``Trainer.train_step`` done here in three timed parts (forward =
     ``compute_losses``, backward, Adam step), per loss phase (reconstruction only, then all terms);
   * ``preview bake``: the bake a job publishes after ``--preview-at`` of its steps (the service's
-    ``CMC_PREVIEW_AT``), and the final ``bake`` (``cmc.baking.bake``), each scored on the test
+    ``CMC_PREVIEW_AT``), and the final ``bake`` (``cmc.serving.baking.bake``), each scored on the test
     views (PSNR; the scoring is not timed); ``load`` (``BakedScene.load``), the first render of
     a test view and the median of ``--renders`` more.
 Pose estimation is not in it (bench/poses_fern.md times it on the phone photos). The split
@@ -38,13 +38,13 @@ from typing import Any
 
 import torch
 
-import cmc.model
-from cmc.baking import BakedScene, bake
-from cmc.bench import report_header
+import cmc.method.model
 from cmc.config import preset_config, with_settings
-from cmc.datasets import load_llff
-from cmc.metrics import psnr
-from cmc.training import Trainer, lr_at
+from cmc.data.datasets import load_llff
+from cmc.eval.bench import report_header
+from cmc.eval.metrics import psnr
+from cmc.method.training import Trainer, lr_at
+from cmc.serving.baking import BakedScene, bake
 
 
 def side_by_side(reports: list[dict[str, Any]]) -> str:
@@ -123,8 +123,12 @@ def main() -> None:
     split = load_llff(Path(args.data))
     spent["load photos"] = time.perf_counter() - t
 
-    cmc.model.sweep_statistics = timed("model build: sweeps placing the planes", cmc.model.sweep_statistics)
-    cmc.model.sweep_probabilities = timed("model build: sweeps setting alpha", cmc.model.sweep_probabilities)
+    cmc.method.model.sweep_statistics = timed(
+        "model build: sweeps placing the planes", cmc.method.model.sweep_statistics
+    )
+    cmc.method.model.sweep_probabilities = timed(
+        "model build: sweeps setting alpha", cmc.method.model.sweep_probabilities
+    )
     sync()
     t = time.perf_counter()
     trainer = Trainer(split.train, cfg, device)

@@ -57,8 +57,8 @@ from servers import free_port, stop_process_groups, wait_ready, write_report
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cmc.cameras import CameraFile, camera_file_to_dict  # noqa: E402
-from cmc.datasets import synthetic_scene  # noqa: E402
+from cmc.data.datasets import synthetic_scene  # noqa: E402
+from cmc.geometry.cameras import CameraFile, camera_file_to_dict  # noqa: E402
 from service.auth import key_digest  # noqa: E402
 from service.db.scenes import SceneStore  # noqa: E402
 
@@ -90,9 +90,9 @@ def upload_parts() -> list[tuple]:
 
 def ready_scenes(store: SceneStore, storage: Path, owners: list[str]) -> tuple[dict[str, str], dict]:
     """Per owner, a ready scene with a baked MPI of an untrained model at 128x96; and a render body."""
-    from cmc.baking import bake
     from cmc.config import preset_config
-    from cmc.training import Trainer
+    from cmc.method.training import Trainer
+    from cmc.serving.baking import bake
 
     scene = synthetic_scene(3, 128, 96)
     baked = storage / "_baked"

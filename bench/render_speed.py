@@ -1,7 +1,7 @@
 """CPU latency of the baked renderer (``BakedScene.render``) on a real-size fern bake.
 
 Builds a 48-plane fern bake: the ``fast`` preset on LLFF fern's three training views (1, 10, 19),
-``--steps`` training steps (default 400, the preset's), baked with all planes (``cmc.baking.bake``,
+``--steps`` training steps (default 400, the preset's), baked with all planes (``cmc.serving.baking.bake``,
 merge 1). The CPU renderer's cost depends on the alphas (it skips empty texel tiles and stops
 rays once opaque), so time a fully trained bake: this one, or ``--baked`` of a
 ``cmc bench llff --save-dir DIR`` run (``DIR/fast/fern/baked``). Then times ``BakedScene.render`` at the
@@ -19,17 +19,17 @@ measurements time the same textures.
 
 ``--before OLD.py`` also times an older renderer, alternating with the current one render by
 render, so that both see the same machine state (a shared CPU drifts by tens of percent within
-minutes): either a version of :mod:`cmc.rendering` (e.g. ``git show HEAD~1:cmc/rendering.py >
-/tmp/old.py``; its ``render_image`` over the same loaded scene) or of :mod:`cmc.texture_kernel`:
+minutes): either a version of :mod:`cmc.mpi.rendering` (e.g. ``git show HEAD~1:cmc/mpi/rendering.py >
+/tmp/old.py``; its ``render_image`` over the same loaded scene) or of :mod:`cmc.serving.texture_kernel`:
 one that takes packed textures (its ``PackedTextures`` built from the loaded textures, its
 ``render`` on ``--threads``), or one from before that (its ``render_baked_mpi`` per MPI, blended
-by :func:`cmc.rendering.blend`). The report then has a ``before`` block and the agreement of the two
+by :func:`cmc.mpi.rendering.blend`). The report then has a ``before`` block and the agreement of the two
 renders (colour PSNR, depth max relative error over covered pixels). Every report also has the
-agreement of the current renderer with the torch renderer (:func:`cmc.rendering.render_image`,
+agreement of the current renderer with the torch renderer (:func:`cmc.mpi.rendering.render_image`,
 untimed): the quality target.
 
 ``--before-baked DIR`` instead times the current renderer on an older bake of the same scene
-(e.g. one made before a change to :func:`cmc.baking.bake`), alternating in the same way; the
+(e.g. one made before a change to :func:`cmc.serving.baking.bake`), alternating in the same way; the
 agreement block then compares the two bakes' renders.
 
 ``--threads N``: CPU threads per render of the current renderer (default: one per core).
@@ -61,13 +61,13 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from cmc.baking import MANIFEST, BakedScene, bake  # noqa: E402
-from cmc.bench import git_commit  # noqa: E402
 from cmc.config import preset_config  # noqa: E402
-from cmc.datasets import load_llff  # noqa: E402
-from cmc.metrics import psnr  # noqa: E402
-from cmc.rendering import ImageOutput, RayOutput, blend, blend_selection, render_image  # noqa: E402
-from cmc.training import Trainer  # noqa: E402
+from cmc.data.datasets import load_llff  # noqa: E402
+from cmc.eval.bench import git_commit  # noqa: E402
+from cmc.eval.metrics import psnr  # noqa: E402
+from cmc.method.training import Trainer  # noqa: E402
+from cmc.mpi.rendering import ImageOutput, RayOutput, blend, blend_selection, render_image  # noqa: E402
+from cmc.serving.baking import MANIFEST, BakedScene, bake  # noqa: E402
 
 
 def cpu_model() -> str:
@@ -91,7 +91,7 @@ def build_bake(data: Path, steps: int, out_dir: Path) -> dict:
 
 
 def load_rendering(path: Path) -> ModuleType:
-    """Another version of cmc/rendering.py, imported beside the current one."""
+    """Another version of cmc/mpi/rendering.py, imported beside the current one."""
     spec = importlib.util.spec_from_file_location("rendering_before", path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
@@ -119,7 +119,7 @@ def main() -> None:
         "--before",
         type=Path,
         default=None,
-        help="an older cmc/rendering.py or texture_kernel.py to time alternately",
+        help="an older cmc/mpi/rendering.py or texture_kernel.py to time alternately",
     )
     ap.add_argument(
         "--before-baked",

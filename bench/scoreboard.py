@@ -186,7 +186,7 @@ def speed() -> list[str]:
         med = b["median_s"]
         out += [
             "",
-            "The model build alone, the sweep's torch ops against its compiled kernels (`cmc/sweep_kernel.py`),",
+            "The model build alone, the sweep's torch ops against its compiled kernels (`cmc/method/sweep_kernel.py`),",
             f"alternating, {len(b['seconds']['torch'])} runs each (`{b['command']}`, {source(b, BUILD_REPORT)}):",
             f"median {med['torch']:.1f} s -> {med['compiled']:.1f} s ({med['torch'] / med['compiled']:.1f}x),",
             f"the same model to the bit: {'yes' if b['same_model_to_the_bit'] else 'NO'}.",

@@ -61,9 +61,9 @@ from servers import flush_redis, free_port, stop_process_groups, wait_ready, wri
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cmc.bench import git_commit  # noqa: E402
-from cmc.cameras import CameraFile, camera_file_to_dict  # noqa: E402
-from cmc.datasets import load_llff  # noqa: E402
+from cmc.data.datasets import load_llff  # noqa: E402
+from cmc.eval.bench import git_commit  # noqa: E402
+from cmc.geometry.cameras import CameraFile, camera_file_to_dict  # noqa: E402
 
 
 def percentile(xs: list[float], q: float) -> float:
@@ -137,7 +137,7 @@ def encodings(baked_dir: Path, split) -> dict:
 
     from PIL import Image
 
-    from cmc.baking import BakedScene
+    from cmc.serving.baking import BakedScene
     from service.renders import encode_depth_npy, encode_depth_png16, encode_image
 
     baked = BakedScene.load(baked_dir)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from cmc.datasets import load_llff
+from cmc.data.datasets import load_llff
 from cmc.poses.intake import sift_peak_threshold
 
 scene = sys.argv[1]

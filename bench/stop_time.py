@@ -45,8 +45,8 @@ sys.path.insert(0, str(ROOT))
 
 from servers import flush_redis, free_port, stop_process_groups, wait_ready, write_report  # noqa: E402
 
-from cmc.cameras import CameraFile, camera_file_to_dict  # noqa: E402
-from cmc.datasets import load_llff  # noqa: E402
+from cmc.data.datasets import load_llff  # noqa: E402
+from cmc.geometry.cameras import CameraFile, camera_file_to_dict  # noqa: E402
 
 
 def fern_upload(fern: Path, steps: int) -> list:

@@ -1,9 +1,9 @@
 """How often the plane sweep's best plane is right, for each photo-consistency cost.
 
-The ``fast`` preset starts every MPI's alpha from a plane sweep (``cmc.planesweep``). This scores
+The ``fast`` preset starts every MPI's alpha from a plane sweep (``cmc.method.planesweep``). This scores
 the sweep alone, before any training, against depth it never saw:
 
-* the wide-baseline synthetic scenes (``cmc.datasets.wide_baseline_split``): exact depth at every
+* the wide-baseline synthetic scenes (``cmc.data.datasets.wide_baseline_split``): exact depth at every
   other pixel of each input view;
 * LLFF fern with the RegNeRF split: the SfM points of ``sparse/0/points3D.bin`` whose track holds
   an input view (COLMAP image ids follow the sorted image names, as ``poses_bounds.npy`` rows do),
@@ -33,11 +33,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cmc.bench import git_commit
 from cmc.config import preset_config
-from cmc.datasets import WIDE_SCENES, Scene, load_llff, wide_baseline_split
-from cmc.planesweep import plane_sweep_weights, texel_pixels
-from cmc.rendering import MPIFrame
+from cmc.data.datasets import WIDE_SCENES, Scene, load_llff, wide_baseline_split
+from cmc.eval.bench import git_commit
+from cmc.method.planesweep import plane_sweep_weights, texel_pixels
+from cmc.mpi.rendering import MPIFrame
 
 # (label, cost, softmin temperature, supersample, (P1, P2) of semi-global aggregation, occlusion
 # aware: the best-matching other view's cost, else the mean of the views'): the starts of the

@@ -30,13 +30,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cmc.bench import git_commit  # noqa: E402
+from cmc.eval.bench import git_commit  # noqa: E402
 
 MEASURE = r"""
 import json, statistics, sys, time, torch
 from cmc.config import preset_config, with_settings
-from cmc.datasets import load_llff
-from cmc.training import Trainer
+from cmc.data.datasets import load_llff
+from cmc.method.training import Trainer
 data, steps = sys.argv[1], int(sys.argv[2])
 torch.manual_seed(0)
 cfg = with_settings(preset_config("fast"), ["model.pyramid.init_from_sweep=false"])

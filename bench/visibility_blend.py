@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cmc.baking import BakedScene
-from cmc.bench import report_header
 from cmc.config import preset_config
-from cmc.datasets import WIDE_SCENES, wide_baseline_split
-from cmc.geometry import blend_weights, mean_baseline
-from cmc.metrics import psnr
-from cmc.rendering import render_texture_image
+from cmc.data.datasets import WIDE_SCENES, wide_baseline_split
+from cmc.eval.bench import report_header
+from cmc.eval.metrics import psnr
+from cmc.geometry.planes import blend_weights, mean_baseline
+from cmc.mpi.rendering import render_texture_image
+from cmc.serving.baking import BakedScene
 
 GAMMAS = (0, 1, 2, 4, 8)  # 0 = today's blend
 

@@ -16,13 +16,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from cmc.baking import BakedScene, bake
-from cmc.camera_paths import PATH_KINDS
-from cmc.cameras import load_camera_file
 from cmc.config import PRESETS, preset_config, with_settings
-from cmc.datasets import CAMERAS_FILE, WIDE_SCENES, load_scene_folder, save_image
+from cmc.data.datasets import CAMERAS_FILE, WIDE_SCENES, load_scene_folder, save_image
 from cmc.errors import CMCError, ConfigError
-from cmc.training import Progress, Trainer, TrainingCancelled
+from cmc.geometry.camera_paths import PATH_KINDS
+from cmc.geometry.cameras import load_camera_file
+from cmc.method.training import Progress, Trainer, TrainingCancelled
+from cmc.serving.baking import BakedScene, bake
 
 
 class ProgressBar:
@@ -93,7 +93,7 @@ def cmd_render(args: argparse.Namespace) -> None:
     cams = load_camera_file(args.cameras)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    from cmc.diagnostics import depth_preview
+    from cmc.eval.diagnostics import depth_preview
 
     for i, name in enumerate(tqdm(cams.file_paths, desc="render", unit="view")):
         c = cams.cameras[i]
@@ -106,7 +106,7 @@ def cmd_render(args: argparse.Namespace) -> None:
 
 
 def _render_video(baked: BakedScene, args: argparse.Namespace) -> None:
-    from cmc.video import DEFAULT_FPS, DEFAULT_FRAMES, render_path_video
+    from cmc.serving.video import DEFAULT_FPS, DEFAULT_FRAMES, render_path_video
 
     frames = DEFAULT_FRAMES if args.frames is None else args.frames
     fps = DEFAULT_FPS if args.fps is None else args.fps
@@ -145,7 +145,7 @@ def _input_gains(text: str) -> list[float]:
 
 
 def cmd_bench(args: argparse.Namespace) -> None:
-    from cmc.bench import run_llff_bench, run_synthetic_bench, write_report
+    from cmc.eval.bench import run_llff_bench, run_synthetic_bench, write_report
 
     if args.dataset == "llff" and not args.data:
         raise ConfigError("the llff benchmark needs --data (the folder holding the LLFF scene folders)")
@@ -195,7 +195,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
 
 
 def cmd_export(args: argparse.Namespace) -> None:
-    from cmc.gltf import export_glb
+    from cmc.serving.gltf import export_glb
 
     data, index = export_glb(args.baked, args.mpi)
     out = Path(args.out)

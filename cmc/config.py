@@ -11,11 +11,33 @@ from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from typing import Any, Literal, get_type_hints
 
 from cmc.errors import ConfigError
-from cmc.fields import MLPFieldConfig, PyramidFieldConfig
-from cmc.planesweep import SweepConfig
+from cmc.mpi.fields import MLPFieldConfig, PyramidFieldConfig
 
 Preset = Literal["paper", "fast"]
 PRESETS: tuple[Preset, ...] = ("paper", "fast")
+
+
+@dataclass
+class SweepConfig:
+    """How the plane sweep (:func:`cmc.method.planesweep.plane_sweep_weights`) scores the planes
+    (defaults: the ``fast`` preset's)."""
+
+    # Softmin temperature on the cost, in its units (lower: more confident).
+    temperature: float = 0.3
+    window: int = 5  # side of the texel window the cost is averaged over
+    # The photo-consistency measure: "ad" (mean absolute colour difference) or "ad_census"
+    # (that plus a census term, both saturated).
+    cost: Literal["ad", "ad_census"] = "ad_census"
+    edge_sigma: float = 0.1  # > 0: edge-aware window weights, in colour units; 0: uniform window
+    occlusion_aware: bool = True  # the best-matching other view's cost, not the mean over views
+    extend_border: bool = True  # the margin takes the geometry of the image's border
+    # (P1, P2) of semi-global aggregation of the cost (cmc.method.planesweep.semi_global), in cost
+    # units; P2 = 0: off.
+    smoothness: tuple[float, float] = (0.2, 2.0)
+    # The sweep runs on a grid this many times finer than alpha's finest level, while that grid
+    # holds at most max_texels texels (cmc.method.planesweep.affordable_supersample).
+    supersample: int = 2
+    max_texels: int = 2**19
 
 
 @dataclass
@@ -26,15 +48,15 @@ class ModelConfig:
     num_planes: int = 56  # D planes per MPI
     # Spacing of the planes in disparity: 1 = uniform between near and far; below 1, this share
     # of the planes is spread uniformly and the rest follows where a plane sweep finds the scene's
-    # surfaces (cmc.model.sweep_statistics, cmc.geometry.content_plane_depths), so that a surface
+    # surfaces (cmc.method.model.sweep_statistics, cmc.geometry.planes.content_plane_depths), so that a surface
     # lies nearer a plane and a view far from the inputs sees it less displaced.
     plane_density_floor: float = 0.25
     # With plane_density_floor below 1: the planes span only the depths where the first plane sweep
-    # finds the scene's surfaces (cmc.geometry.occupied_depth_range), not all of the scene's
+    # finds the scene's surfaces (cmc.geometry.planes.occupied_depth_range), not all of the scene's
     # near/far bounds, so the views do not depend on how tight those bounds are.
     fit_depth_range: bool = True
     margin: float = 1.2  # plane extent relative to the reference image (see MPIFrame)
-    # Learn each input photo's colour response (gain and offset per channel, cmc.model.ExposureResponse),
+    # Learn each input photo's colour response (gain and offset per channel, cmc.method.model.ExposureResponse),
     # so that an MPI is compared with another input photo in that photo's exposure and white balance.
     exposure_compensation: bool = True
     # The plane sweep that places the planes (with plane_density_floor below 1) and starts the
@@ -52,11 +74,11 @@ class LossConfig:
     lambda_dc_input: float = 0.01  # depth consistency between MPIs at the input views (L_dc^I)
     lambda_ac: float = 0.0  # appearance consistency between MPIs at unseen poses (Eq. 4.6)
     lambda_dc: float = 0.01  # depth consistency between MPIs at unseen poses (Eq. 4.7)
-    lambda_distortion: float = 0.01  # concentration of each ray's opacity (cmc.losses.distortion)
+    lambda_distortion: float = 0.01  # concentration of each ray's opacity (cmc.method.losses.distortion)
     # Form of both depth-consistency terms: "squared" (the paper's, on depth / (far - near)) or
-    # "cauchy" (occlusion-tolerant, on disparity; cmc.losses.robust_depth_consistency).
+    # "cauchy" (occlusion-tolerant, on disparity; cmc.method.losses.robust_depth_consistency).
     depth_consistency: Literal["squared", "cauchy"] = "cauchy"
-    lambda_alpha_entropy: float = 0.003  # visible alpha pushed to 0 or 1 (cmc.losses.alpha_entropy)
+    lambda_alpha_entropy: float = 0.003  # visible alpha pushed to 0 or 1 (cmc.method.losses.alpha_entropy)
     recon_only_fraction: float = 0.3  # first fraction of steps uses L_MSE only (paper: 15/50 epochs)
     cross_view_colour: float = 0.1  # factor on the colour gradients of MPI i from input view j != i
 
@@ -107,7 +129,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
     * ``paper``: the paper's Sec. 5.1 -- per-view MLP (PE L=10 on the point, raw direction,
       6 x 256 LeakyReLU), 80 planes, Adam 5e-3 -> 1e-4, 1024-ray batches, reconstruction only for
       the first 30 %, then lambda_ac = lambda_dc = 1.
-    * ``fast``: explicit multi-resolution plane textures (see cmc.fields.PyramidPlaneField),
+    * ``fast``: explicit multi-resolution plane textures (see cmc.mpi.fields.PyramidPlaneField),
       alpha initialised by an occlusion-aware, edge-aware plane sweep with the AD-Census cost
       (``sweep.cost="ad_census"``) and semi-global aggregation (``sweep.smoothness=(0.2,
       2.0)``: an untextured wall takes the depth its neighbours agree on), softmin temperature
@@ -115,9 +137,9 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       ``sweep.max_texels`` (``sweep.supersample=2``), the margin beyond the photo starting
       with the border's geometry (``sweep.extend_border``); 56 planes, the paper's losses
       except L_ac (which blurred novel views in the ablation), the depth-consistency terms
-      in an occlusion-tolerant form (cmc.losses.robust_depth_consistency), plus a concentration
-      prior on each ray's opacity (cmc.losses.distortion) and a binary-entropy prior on the alpha
-      a ray sees (cmc.losses.alpha_entropy: no faint fog in front of surfaces), a full-resolution
+      in an occlusion-tolerant form (cmc.method.losses.robust_depth_consistency), plus a concentration
+      prior on each ray's opacity (cmc.method.losses.distortion) and a binary-entropy prior on the alpha
+      a ray sees (cmc.method.losses.alpha_entropy: no faint fog in front of surfaces), a full-resolution
       base colour per group of 7 planes (``model.pyramid.base_groups=8``: a surface hidden in
       the reference photo gets its own texture) sampled bicubically
       (``model.pyramid.base_interpolation``: detail survives the sub-texel shifts of a novel

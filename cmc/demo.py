@@ -13,10 +13,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from cmc.baking import BakedScene, bake
-from cmc.camera_paths import orbit_poses
 from cmc.config import preset_config
-from cmc.datasets import (
+from cmc.data.datasets import (
     DEFAULT_LAYERS,
     render_layers,
     save_image,
@@ -24,10 +22,12 @@ from cmc.datasets import (
     synthetic_cameras,
     synthetic_scene,
 )
-from cmc.diagnostics import depth_preview, with_depth_legend
-from cmc.images import to_uint8
-from cmc.metrics import psnr
-from cmc.training import Progress, Trainer
+from cmc.data.images import to_uint8
+from cmc.eval.diagnostics import depth_preview, with_depth_legend
+from cmc.eval.metrics import psnr
+from cmc.geometry.camera_paths import orbit_poses
+from cmc.method.training import Progress, Trainer
+from cmc.serving.baking import BakedScene, bake
 
 # What the summary's numbers mean and what good looks like (the recorded run: bench/demo_cpu.json).
 READING = {

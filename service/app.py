@@ -15,7 +15,7 @@ from typing import Any
 
 from fastapi import FastAPI
 
-from cmc.images import MemoryBudget
+from cmc.data.images import MemoryBudget
 from service.api import Services, router
 from service.auth import KeyRing
 from service.db.scenes import SceneStore

@@ -1,7 +1,7 @@
 """Sending jobs to workers: one small interface, a Celery implementation.
 
 The API never imports worker code: Celery tasks are sent *by name* (``cmc.poses`` on the CPU
-queue, ``cmc.train`` and ``cmc.video`` on the GPU queue, ``cmc.webhook`` on the webhook queue)
+queue, ``cmc.train`` and ``cmc.serving.video`` on the GPU queue, ``cmc.webhook`` on the webhook queue)
 with the scene id (and the video's path kind) or the delivery id as arguments; the database and
 storage hold everything else. The embedded runner
 (``worker.embedded``) implements the same interface in-process for ``cmc serve``.
@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 TASK_NAMES: dict[str, str] = {
     "poses": "cmc.poses",
     "train": "cmc.train",
-    "video": "cmc.video",
+    "video": "cmc.serving.video",
     "webhook": "cmc.webhook",
 }
 

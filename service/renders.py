@@ -1,6 +1,6 @@
 """Novel views and depth maps from baked MPIs, with an in-memory cache of loaded scenes.
 
-Rendering uses :class:`cmc.baking.BakedScene` (the baked atlases alone, no trained model).
+Rendering uses :class:`cmc.serving.baking.BakedScene` (the baked atlases alone, no trained model).
 That needs torch, imported on the first render only; the rest of the API does not load it.
 Renders run on their own threads (:class:`RenderQueue`), never on the thread pool the other
 routes share, so probes and status polls answer whatever the render load: at most
@@ -16,7 +16,7 @@ Depth encodings (``POST /v1/scenes/{id}/depth``, by ``Accept``):
 * ``?preview=true``: an 8-bit colour map of inverse depth (PNG) for people.
 
 ``?coverage=true`` (render and depth) marks the pixels whose point no input photo saw
-(:meth:`cmc.baking.BakedScene.coverage`): an alpha channel (0 there, opaque elsewhere) in every
+(:meth:`cmc.serving.baking.BakedScene.coverage`): an alpha channel (0 there, opaque elsewhere) in every
 PNG, NaN in the ``.npy``; a JPEG render cannot carry it (406).
 
 Scene units are those of the cameras: arbitrary (SfM) for estimated poses, metres for ARKit.
@@ -55,7 +55,7 @@ class Rendered:
 
 class BakedCache:
     """LRU cache of loaded baked scenes, keyed by their storage folder (a scene's final bake or its
-    preview), bounded by their bytes in memory (:attr:`cmc.baking.BakedScene.nbytes`); the scene
+    preview), bounded by their bytes in memory (:attr:`cmc.serving.baking.BakedScene.nbytes`); the scene
     just loaded always stays, and loading one folder of a scene drops the scene's others (the
     preview once the final bake is served)."""
 
@@ -68,7 +68,7 @@ class BakedCache:
     def get(self, folder: str) -> Any:
         """The baked scene in storage folder ``folder``; FileNotFoundError if none is stored there
         (a preview removed once its scene became ready)."""
-        from cmc.baking import BakedScene
+        from cmc.serving.baking import BakedScene
 
         with self._lock:
             if folder in self._scenes:
@@ -115,7 +115,7 @@ class BakedCache:
         height: int,
         coverage: bool = False,
     ) -> Rendered:
-        """Colour and depth of one camera (OpenCV convention, pixels, see cmc.cameras) from the
+        """Colour and depth of one camera (OpenCV convention, pixels, see cmc.geometry.cameras) from the
         baked scene in storage folder ``folder``, and with ``coverage`` which pixels show a point
         an input photo saw (:meth:`BakedScene.coverage`)."""
         import torch
@@ -162,7 +162,7 @@ class RenderQueue:
 def encode_image(rgb: np.ndarray, media_type: str, alpha: np.ndarray | None = None) -> bytes:
     """[H, W, 3] float in [0, 1] -> PNG or JPEG bytes; with ``alpha`` [H, W] bool an RGBA PNG
     (opaque where True)."""
-    from cmc.images import to_uint8
+    from cmc.data.images import to_uint8
 
     rgb8 = to_uint8(rgb)
     if alpha is not None:
@@ -236,6 +236,6 @@ def encode_depth_npy(depth: np.ndarray, coverage: np.ndarray | None = None) -> b
 
 
 def encode_depth_preview(depth: np.ndarray, near: float, far: float, coverage: np.ndarray | None = None) -> bytes:
-    from cmc.diagnostics import depth_preview
+    from cmc.eval.diagnostics import depth_preview
 
     return encode_image(depth_preview(depth, near, far) * (depth > 0)[..., None], "image/png", coverage)

@@ -99,7 +99,7 @@ class RenderCamera(BaseModel):
     )
 
 
-# The camera paths of cmc.camera_paths (PathKind), spelled here so the API need not import cmc.
+# The camera paths of cmc.geometry.camera_paths (PathKind), spelled here so the API need not import cmc.
 PathName = Literal["spiral", "orbit", "dolly"]
 
 

@@ -70,7 +70,7 @@ class Settings(BaseSettings):
         512 * MB,
         ge=16 * MB,
         description="bytes that photo decodes in one process may hold at once (upload checks, pose estimation): "
-        "a decode waits until its estimate fits (cmc.images.decode_bytes: 4 to 20 bytes per pixel by format and "
+        "a decode waits until its estimate fits (cmc.data.images.decode_bytes: 4 to 20 bytes per pixel by format and "
         "mode, JPEGs decoded at reduced size); one larger than this runs alone",
     )
     max_cameras_bytes: int = Field(1 * MB, ge=1024, description="bytes of the optional cameras / options parts")

@@ -6,7 +6,7 @@ Parts of ``POST /v1/scenes`` (multipart/form-data):
 * ``images`` (repeated): the photos. Written straight to a local folder under our own names
   (``00.jpg``...; the API then publishes it as ``{id}/uploads/``); the client's file name is
   kept as data only.
-* ``cameras`` (optional): a transforms.json-style cameras file (see cmc.cameras).
+* ``cameras`` (optional): a transforms.json-style cameras file (see cmc.geometry.cameras).
 * ``options`` (optional): JSON, :class:`service.schemas.SceneOptions`.
 * ``callback_url`` (optional): where the scene's webhooks go (:mod:`service.webhooks`).
 
@@ -35,7 +35,7 @@ from service.schemas import SceneOptions
 from service.settings import Settings
 
 if TYPE_CHECKING:
-    from cmc.images import MemoryBudget
+    from cmc.data.images import MemoryBudget
 
 _EXTENSIONS = {"JPEG": ".jpg", "PNG": ".png", "WEBP": ".webp", "HEIF": ".heic"}
 
@@ -172,8 +172,8 @@ def check_images(upload: Upload, settings: Settings, decode_memory: MemoryBudget
     """Sniff every photo by content, check pixels and that it decodes (waiting for its memory in
     ``decode_memory``, when given); rename each file to the extension of its real format.
     Returns the storage names. Raises APIError 413/415/422."""
-    from cmc.datasets import SceneError
-    from cmc.images import (
+    from cmc.data.datasets import SceneError
+    from cmc.data.images import (
         ImageTooLargeError,
         UnsupportedImageError,
         accepted_formats,
@@ -257,7 +257,7 @@ def parse_cameras(upload: Upload, stored_names: list[str]) -> dict | None:
     ``file_path`` renamed to our storage name (the worker reads that copy)."""
     if upload.cameras is None:
         return None
-    from cmc.cameras import CameraError, camera_file_from_dict, match_frames
+    from cmc.geometry.cameras import CameraError, camera_file_from_dict, match_frames
 
     try:
         data = json.loads(upload.cameras)

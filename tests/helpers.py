@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from cmc.cameras import CameraFile, Cameras, camera_file_to_dict
-from cmc.datasets import Scene, synthetic_cameras, synthetic_scene
+from cmc.data.datasets import Scene, synthetic_cameras, synthetic_scene
+from cmc.geometry.cameras import CameraFile, Cameras, camera_file_to_dict
 
 S3_CREDENTIALS = {"AWS_ACCESS_KEY_ID": "test", "AWS_SECRET_ACCESS_KEY": "test", "AWS_DEFAULT_REGION": "us-east-1"}
 SHARED_DIR = Path(os.environ.get("CMC_SHARED_DIR") or Path(__file__).resolve().parents[1].parent / "shared")

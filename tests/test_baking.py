@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from cmc._reference import render_texture_image_reference
-from cmc.baking import BakedFormatError, BakedScene, bake, quantize_planes
 from cmc.config import preset_config
-from cmc.datasets import synthetic_scene
-from cmc.fields import PyramidPlaneField
-from cmc.geometry import blend_weights, mean_baseline, sample_virtual_pose
-from cmc.metrics import psnr
-from cmc.rendering import blend
-from cmc.training import Trainer
+from cmc.data.datasets import synthetic_scene
+from cmc.eval.metrics import psnr
+from cmc.geometry.planes import blend_weights, mean_baseline, sample_virtual_pose
+from cmc.method.training import Trainer
+from cmc.mpi._reference import render_texture_image_reference
+from cmc.mpi.fields import PyramidPlaneField
+from cmc.mpi.rendering import blend
+from cmc.serving.baking import BakedFormatError, BakedScene, bake, quantize_planes
 
 W, H = 64, 48
 
@@ -71,7 +71,7 @@ def test_baked_render_matches_slow_twin(trained, tmp_path):
         ]
         slow = blend(twins, blend_weights(centers, P[:3, 3], mean_baseline(centers)))
         assert float(slow.acc.max()) > 0.99
-        # The CPU kernel stops a ray at transmittance 1e-4 (cmc.texture_kernel): colour and
+        # The CPU kernel stops a ray at transmittance 1e-4 (cmc.serving.texture_kernel): colour and
         # coverage may differ by that much, depth by that share of the far plane's depth.
         torch.testing.assert_close(fast.rgb.reshape(-1, 3), slow.rgb, rtol=0, atol=1e-4)
         torch.testing.assert_close(fast.acc.reshape(-1), slow.acc, rtol=0, atol=1e-4)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from helpers import rigid, rotation
 
-from cmc.camera_paths import camera_path, capture_radius, mean_pose, orbit_path, orbit_poses
-from cmc.datasets import synthetic_cameras
+from cmc.data.datasets import synthetic_cameras
+from cmc.geometry.camera_paths import camera_path, capture_radius, mean_pose, orbit_path, orbit_poses
 
 NEAR, FAR = 1.6, 6.6
 

@@ -1,4 +1,4 @@
-"""Tests of cmc.cameras: LLFF and transforms.json converters (round trips and hand-computed axes),
+"""Tests of cmc.geometry.cameras: LLFF and transforms.json converters (round trips and hand-computed axes),
 projection known answers, scaling, and the errors bad camera input must raise.
 
 The real LLFF file lives in the shared folder: ``$CMC_SHARED_DIR`` or else ``../shared`` next to the
@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from helpers import SHARED_DIR, rigid, rotation
 
-from cmc.cameras import (
+from cmc.data.datasets import load_llff
+from cmc.geometry.cameras import (
     CameraError,
     CameraFile,
     Cameras,
@@ -29,7 +30,6 @@ from cmc.cameras import (
     load_camera_file,
     save_camera_file,
 )
-from cmc.datasets import load_llff
 
 FERN_POSES = SHARED_DIR / "datasets" / "llff" / "fern" / "poses_bounds.npy"
 

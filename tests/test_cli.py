@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from cmc.cameras import CameraFile, save_camera_file
 from cmc.cli import main
-from cmc.datasets import load_image, save_scene_folder, synthetic_scene
+from cmc.data.datasets import load_image, save_scene_folder, synthetic_scene
+from cmc.geometry.cameras import CameraFile, save_camera_file
 
 
 @pytest.fixture()
@@ -80,7 +80,7 @@ def test_malformed_cameras(scene_dir, tmp_path, capsys, edit, needle):
 
 
 def test_cameras_without_bounds(scene_dir, tmp_path, capsys):
-    from cmc.cameras import load_camera_file
+    from cmc.geometry.cameras import load_camera_file
 
     cf = load_camera_file(scene_dir / "cameras.json")
     save_camera_file(CameraFile(cf.cameras, cf.file_paths, None), scene_dir / "cameras.json")

@@ -1,6 +1,6 @@
 """The GPU path (what the service's `gpu` worker runs) against the CPU path, on a tiny synthetic
 scene. CUDA trains with torch's ``grid_sample`` and renders baked scenes with torch, where the CPU
-uses the compiled kernels (cmc.plane_sampling, cmc.texture_kernel): both must give the same model.
+uses the compiled kernels (cmc.mpi.plane_sampling, cmc.serving.texture_kernel): both must give the same model.
 
 Skipped where torch sees no CUDA device (CI has none); run on a GPU machine with
 ``python -m pytest --noconftest tests/test_cuda.py``.
@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 import torch
 
-from cmc.baking import BakedScene, bake
 from cmc.config import preset_config
-from cmc.datasets import DEFAULT_LAYERS, render_layers, synthetic_cameras, synthetic_scene
-from cmc.metrics import psnr
-from cmc.model import CMCModel
-from cmc.training import Trainer
+from cmc.data.datasets import DEFAULT_LAYERS, render_layers, synthetic_cameras, synthetic_scene
+from cmc.eval.metrics import psnr
+from cmc.method.model import CMCModel
+from cmc.method.training import Trainer
+from cmc.serving.baking import BakedScene, bake
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="torch sees no CUDA device")
 

@@ -7,15 +7,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-import cmc.training
+import cmc.method.training
 from cmc.config import PRESETS, preset_config
-from cmc.datasets import synthetic_scene
-from cmc.eta import FAST_RAYS_PER_VIEW, PRESET_STEPS, TrainingETA, bake_steps, first_full_step, full_cost_ratio
-from cmc.training import Trainer
+from cmc.data.datasets import synthetic_scene
+from cmc.method.eta import FAST_RAYS_PER_VIEW, PRESET_STEPS, TrainingETA, bake_steps, first_full_step, full_cost_ratio
+from cmc.method.training import Trainer
 
 
 def _naive_remaining_s(elapsed: float, done: int, total: int) -> float:
-    """The estimate before cmc.eta: the mean step time so far times the steps left."""
+    """The estimate before cmc.method.eta: the mean step time so far times the steps left."""
     return elapsed / done * (total - done)
 
 
@@ -64,7 +64,7 @@ def test_fit_reports_the_phase_aware_estimate(monkeypatch) -> None:
         self.step += 1
         return {"mse": 0.0}
 
-    monkeypatch.setattr(cmc.training, "time", clock)
+    monkeypatch.setattr(cmc.method.training, "time", clock)
     monkeypatch.setattr(Trainer, "train_step", fake_step)
     seen = {}
     trainer.fit(on_progress=lambda p: seen.setdefault(p.step, p.eta_s))

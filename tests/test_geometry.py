@@ -1,4 +1,4 @@
-"""Tests of cmc.geometry: plane depths, plane-induced homographies (checked against explicit 3D
+"""Tests of cmc.geometry.planes: plane depths, plane-induced homographies (checked against explicit 3D
 projection), virtual poses and blend weights."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import pytest
 import torch
 from helpers import rigid, rotation
 
-from cmc.cameras import intrinsics
-from cmc.geometry import (
+from cmc.geometry.cameras import intrinsics
+from cmc.geometry.planes import (
     apply_homography,
     blend_weights,
     content_plane_depths,

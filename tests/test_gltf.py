@@ -1,4 +1,4 @@
-"""glTF export of a baked MPI (cmc.gltf, ``cmc export``, ``GET /v1/scenes/{id}/export.glb``),
+"""glTF export of a baked MPI (cmc.serving.gltf, ``cmc export``, ``GET /v1/scenes/{id}/export.glb``),
 read back with pygltflib (an independent glTF reader) and checked against the known synthetic
 scene: plane geometry where the reference camera's frustum puts it, the atlas tiles as
 textures, the input cameras as glTF cameras whose projection puts a 3D point on the pixel where
@@ -18,13 +18,13 @@ from fastapi.testclient import TestClient
 from PIL import Image
 from test_service_api import RecordingQueue, settings_for
 
-from cmc.baking import bake
-from cmc.cameras import Cameras
 from cmc.cli import main as cli
 from cmc.config import preset_config
-from cmc.datasets import synthetic_scene
-from cmc.gltf import export_glb
-from cmc.training import Trainer
+from cmc.data.datasets import synthetic_scene
+from cmc.geometry.cameras import Cameras
+from cmc.method.training import Trainer
+from cmc.serving.baking import bake
+from cmc.serving.gltf import export_glb
 from service.app import create_app
 
 W, H = 48, 36

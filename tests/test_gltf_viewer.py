@@ -26,13 +26,13 @@ import pytest
 from helpers import browser_unavailable
 from PIL import Image
 
-from cmc.baking import BakedScene, bake
-from cmc.cameras import convert_pose
 from cmc.config import preset_config
-from cmc.datasets import synthetic_cameras, synthetic_scene
-from cmc.gltf import export_glb, scene_root
-from cmc.metrics import psnr
-from cmc.training import Trainer
+from cmc.data.datasets import synthetic_cameras, synthetic_scene
+from cmc.eval.metrics import psnr
+from cmc.geometry.cameras import convert_pose
+from cmc.method.training import Trainer
+from cmc.serving.baking import BakedScene, bake
+from cmc.serving.gltf import export_glb, scene_root
 
 ROOT = Path(__file__).resolve().parents[1]
 THREE_VERSION = "0.187.0"

@@ -1,4 +1,4 @@
-"""Tests of cmc.images: formats decided by content, EXIF orientation and focal priors, size limits,
+"""Tests of cmc.data.images: formats decided by content, EXIF orientation and focal priors, size limits,
 damaged files, and resizing. Everything is generated here except the fern JPEG known answer, which
 is skipped when the shared folder (``$CMC_SHARED_DIR`` or ``../shared``) is absent.
 """
@@ -17,8 +17,8 @@ import pytest
 from helpers import SHARED_DIR
 from PIL import ExifTags, Image
 
-from cmc.datasets import SceneError
-from cmc.images import (
+from cmc.data.datasets import SceneError
+from cmc.data.images import (
     HEIF_SUPPORTED,
     PhotoInfo,
     accepted_formats,
@@ -220,7 +220,7 @@ def test_fern_exif_focal_matches_llff_calibration() -> None:
 DECODE_PEAK = """
 import gc, json, sys
 from pathlib import Path
-import cmc.images as ci
+import cmc.data.images as ci
 
 def resident():
     fields = dict(line.split(":", 1) for line in Path("/proc/self/status").read_text().splitlines())

@@ -111,7 +111,7 @@ def test_concurrent_worst_case_uploads_stay_under_the_memory_ceiling(tmp_path: P
         os.killpg(server.pid, signal.SIGKILL)
         server.wait(10)
     assert [r.status_code for r in answers] == [202] * 8, [r.text[:200] for r in answers]
-    one_decode = width * height * 8 + 8 * MIB  # cmc.images.decode_bytes of an RGBA PNG
+    one_decode = width * height * 8 + 8 * MIB  # cmc.data.images.decode_bytes of an RGBA PNG
     ceiling = idle + max(budget, one_decode) + 64 * MIB
     assert peak <= ceiling, f"peak {peak / MIB:.0f} MiB > {ceiling / MIB:.0f} MiB (idle {idle / MIB:.0f} MiB)"
 

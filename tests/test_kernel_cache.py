@@ -22,7 +22,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 INSTALL_SCRIPT = ROOT / "docker" / "install-service.sh"
-KERNEL_MODULES = ("cmc.plane_sampling", "cmc.texture_kernel", "cmc.sweep_kernel")
+KERNEL_MODULES = ("cmc.mpi.plane_sampling", "cmc.serving.texture_kernel", "cmc.method.sweep_kernel")
 NOBODY = 65534
 
 
@@ -87,7 +87,7 @@ def test_kernels_import_and_compile_from_a_read_only_install(install: Path) -> N
     """No writable folder beside the modules nor in $HOME: the kernels are defined (at import)
     and compiled into a folder of this user's in the temporary directory."""
     code = (
-        "import cmc.texture_kernel, cmc.plane_sampling as s; from cmc import kernel_cache; "
+        "import cmc.serving.texture_kernel, cmc.mpi.plane_sampling as s; from cmc import kernel_cache; "
         "s.warm_up(); print(kernel_cache.prepare())"
     )
     r = run_child(install, code, as_service_user=True)
@@ -119,5 +119,5 @@ def test_kernels_compiled_in_advance_are_loaded_not_compiled(install: Path) -> N
 
 
 def test_a_seed_without_a_cache_folder_is_refused(install: Path) -> None:
-    r = run_child(install, "import cmc.plane_sampling", as_service_user=True, CMC_KERNEL_CACHE_SEED="/nonexistent")
+    r = run_child(install, "import cmc.mpi.plane_sampling", as_service_user=True, CMC_KERNEL_CACHE_SEED="/nonexistent")
     assert r.returncode != 0 and "NUMBA_CACHE_DIR" in r.stderr

@@ -131,7 +131,7 @@ def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 def test_no_module_imports_itself_through_others() -> None:
     graph = _import_graph()
-    assert {"service.db.scenes", "worker.pipeline", "cmc.training"} <= graph.keys()
+    assert {"service.db.scenes", "worker.pipeline", "cmc.method.training"} <= graph.keys()
     assert "service.db.rows" in graph["service.db.scenes"]  # the graph sees imports
     assert _circles(graph) == []
 
@@ -139,3 +139,34 @@ def test_no_module_imports_itself_through_others() -> None:
 def test_the_circle_finder_finds_a_circle() -> None:
     assert _circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert _circles({"a": {"b"}, "b": set()}) == []
+
+
+# The rooms of cmc/ (ARCHITECTURE.md), lowest first: a module imports only from its own room and
+# the rooms before it.
+CMC_ROOMS = [
+    ["errors", "kernel_cache"],
+    ["geometry"],
+    ["data"],
+    ["poses", "mpi"],
+    ["config"],
+    ["method"],
+    ["serving"],
+    ["eval"],
+    ["demo"],
+    ["cli"],
+]
+
+
+def test_cmc_rooms_import_only_from_the_rooms_below() -> None:
+    level = {room: k for k, rooms in enumerate(CMC_ROOMS) for room in rooms}
+    graph = _import_graph()
+    rooms = {m.split(".")[1] for m in graph if m.startswith("cmc.") and m.count(".") >= 1}
+    assert rooms == set(level), f"rooms without a place in CMC_ROOMS: {rooms ^ set(level)}"
+    upward = [
+        (m, t)
+        for m, targets in graph.items()
+        if m.startswith("cmc.")
+        for t in targets
+        if t.startswith("cmc.") and t.count(".") >= 1 and level[t.split(".")[1]] > level[m.split(".")[1]]
+    ]
+    assert upward == []

@@ -1,4 +1,4 @@
-"""Tests of cmc.metrics: known answers, and agreement with the official implementations' values.
+"""Tests of cmc.eval.metrics: known answers, and agreement with the official implementations' values.
 
 The reference values (``reference/metric_reference.json``), images and LPIPS weights live in the
 shared folder: ``$CMC_SHARED_DIR`` or else ``../shared`` next to the repository.
@@ -16,7 +16,7 @@ import torch
 from helpers import SHARED_DIR
 from PIL import Image
 
-from cmc.metrics import LPIPS, LPIPS_DIR_ENV, image_metrics, psnr, ssim
+from cmc.eval.metrics import LPIPS, LPIPS_DIR_ENV, image_metrics, psnr, ssim
 
 REFERENCE_FILE = SHARED_DIR / "reference" / "metric_reference.json"
 WEIGHTS_DIR = SHARED_DIR / "weights"

@@ -5,8 +5,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from cmc import plane_sampling
-from cmc.fields import PyramidFieldConfig, PyramidPlaneField
+from cmc.mpi import plane_sampling
+from cmc.mpi.fields import PyramidFieldConfig, PyramidPlaneField
 
 
 def _grid_sample_sum(grid, plane_texture, textures, mode):

@@ -7,11 +7,11 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from cmc.datasets import Layer, render_layers, synthetic_cameras
-from cmc.geometry import plane_depths
-from cmc.model import hidden_layer_colours
-from cmc.planesweep import (
-    SweepConfig,
+from cmc.config import SweepConfig
+from cmc.data.datasets import Layer, render_layers, synthetic_cameras
+from cmc.geometry.planes import plane_depths
+from cmc.method.model import hidden_layer_colours
+from cmc.method.planesweep import (
     _window_mean,
     affordable_supersample,
     alpha_from_weights,
@@ -21,7 +21,7 @@ from cmc.planesweep import (
     semi_global,
     semi_global_torch,
 )
-from cmc.rendering import MPIFrame, composite
+from cmc.mpi.rendering import MPIFrame, composite
 
 
 def sweep(**settings) -> SweepConfig:
@@ -203,7 +203,7 @@ def test_census_distance_ignores_gain_and_offset_but_not_a_shift():
 
 
 def test_the_compiled_census_is_its_torch_twin():
-    """The CPU kernel (cmc.sweep_kernel) against the torch ops, on smooth values and on values
+    """The CPU kernel (cmc.method.sweep_kernel) against the torch ops, on smooth values and on values
     with ties (a quantised image: equal neighbours are not brighter)."""
     g = torch.Generator().manual_seed(1)
     for quantise in (False, True):

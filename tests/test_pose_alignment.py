@@ -1,4 +1,4 @@
-"""Tests of aligning two reconstructions (cmc.alignment):
+"""Tests of aligning two reconstructions (cmc.eval.alignment):
 
 * the similarity from cameras (``similarity_from_cameras``, ``apply_similarity_to_poses``): a known
   similarity applied to random cameras is recovered exactly, mapped poses stay rigid and keep their
@@ -17,15 +17,15 @@ import numpy as np
 import pytest
 from helpers import SHARED_DIR
 
-from cmc.alignment import (
+from cmc.data.datasets import synthetic_cameras
+from cmc.eval.alignment import (
     apply_similarity_to_poses,
     corresponding_points,
     invert_similarity,
     register_camera,
     similarity_from_cameras,
 )
-from cmc.cameras import Cameras, cameras_from_llff
-from cmc.datasets import synthetic_cameras
+from cmc.geometry.cameras import Cameras, cameras_from_llff
 from cmc.poses import PoseEstimationError, read_colmap_cameras, read_colmap_points
 
 FERN_SPARSE = SHARED_DIR / "datasets" / "llff" / "fern" / "sparse" / "0"

@@ -20,10 +20,10 @@ import pytest
 from helpers import SHARED_DIR, rotation
 from PIL import ExifTags, Image, ImageDraw, ImageFilter
 
-from cmc.alignment import similarity_from_cameras
-from cmc.cameras import CameraError, CameraFile, Cameras, camera_file_to_dict, cameras_from_llff
 from cmc.cli import main
-from cmc.datasets import DEFAULT_LAYERS, SceneError, load_scene_folder, render_layers, synthetic_cameras
+from cmc.data.datasets import DEFAULT_LAYERS, SceneError, load_scene_folder, render_layers, synthetic_cameras
+from cmc.eval.alignment import similarity_from_cameras
+from cmc.geometry.cameras import CameraError, CameraFile, Cameras, camera_file_to_dict, cameras_from_llff
 from cmc.poses import (
     PoseEstimationCancelled,
     PoseEstimationError,

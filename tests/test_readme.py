@@ -20,7 +20,7 @@ import pytest
 from helpers import SHARED_DIR
 from PIL import Image
 
-from cmc.cameras import camera_file_from_dict, match_frames
+from cmc.geometry.cameras import camera_file_from_dict, match_frames
 from service.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""Tests of cmc.rendering: the fast renderer against its slow twin (outputs and gradients), compositing
+"""Tests of cmc.mpi.rendering: the fast renderer against its slow twin (outputs and gradients), compositing
 known answers, and known-answer renders of textured planes (colour, depth, warp direction, coverage)."""
 
 from __future__ import annotations
@@ -10,13 +10,13 @@ import pytest
 import torch
 from helpers import rigid, rotation
 
-from cmc._reference import render_rays_reference, render_texture_image_reference
-from cmc.cameras import intrinsics
 from cmc.errors import ConfigError
-from cmc.fields import MLPField, MLPFieldConfig, PyramidFieldConfig, PyramidPlaneField, TextureField
-from cmc.geometry import apply_homography, homographies_ref_from_tgt, pixel_centers, plane_depths
-from cmc.metrics import psnr
-from cmc.rendering import (
+from cmc.eval.metrics import psnr
+from cmc.geometry.cameras import intrinsics
+from cmc.geometry.planes import apply_homography, homographies_ref_from_tgt, pixel_centers, plane_depths
+from cmc.mpi._reference import render_rays_reference, render_texture_image_reference
+from cmc.mpi.fields import MLPField, MLPFieldConfig, PyramidFieldConfig, PyramidPlaneField, TextureField
+from cmc.mpi.rendering import (
     MPIFrame,
     composite,
     render_image,
@@ -446,8 +446,8 @@ def test_a_model_with_fewer_planes_than_the_presets_base_groups_gets_one_base_pe
     from dataclasses import replace
 
     from cmc.config import preset_config
-    from cmc.datasets import synthetic_scene
-    from cmc.model import CMCModel
+    from cmc.data.datasets import synthetic_scene
+    from cmc.method.model import CMCModel
 
     cfg = preset_config("fast").model
     assert cfg.pyramid.base_groups == 8

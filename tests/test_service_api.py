@@ -29,12 +29,12 @@ from fastapi.testclient import TestClient
 from helpers import REDIS_URL, render_body, synthetic_upload
 from PIL import Image
 
-from cmc.baking import BakedScene
-from cmc.camera_paths import camera_path, capture_radius, mean_pose, orbit_path
-from cmc.cameras import Cameras, convert_pose
-from cmc.datasets import DEFAULT_LAYERS, render_layers
-from cmc.metrics import psnr
-from cmc.video import path_cameras
+from cmc.data.datasets import DEFAULT_LAYERS, render_layers
+from cmc.eval.metrics import psnr
+from cmc.geometry.camera_paths import camera_path, capture_radius, mean_pose, orbit_path
+from cmc.geometry.cameras import Cameras, convert_pose
+from cmc.serving.baking import BakedScene
+from cmc.serving.video import path_cameras
 from service.app import create_app
 from service.auth import key_digest
 from service.limits import MemoryLimiter, RedisLimiter
@@ -176,7 +176,7 @@ def test_status_of_a_ready_scene(ready) -> None:
 def test_eta_seconds_covers_the_rest_of_the_job(ready) -> None:
     """eta_seconds is the whole job's: while estimating poses it holds the training to come, in
     every later stage it is set, and the bake has an estimate of its own."""
-    from cmc.eta import reference_training_s
+    from cmc.method.eta import reference_training_s
 
     client, _, _, _ = ready
     writes = client.job_writes
@@ -257,7 +257,7 @@ def test_camera_path_gives_novel_cameras_that_render_as_they_are(ready) -> None:
     assert r.status_code == 200 and r.json()["path"] == "orbit"
     frames = r.json()["frames"]
     assert len(frames) == 8 and set(frames[0]) == set(RenderCamera.model_fields)
-    # where cmc.camera_paths puts them: the orbit of the baked MPIs' reference cameras, as in the video
+    # where cmc.geometry.camera_paths puts them: the orbit of the baked MPIs' reference cameras, as in the video
     manifest = client.get(f"/v1/scenes/{sid}/mpi").json()
     refs = np.array([m["world_from_cam"] for m in manifest["mpis"]])
     poses = np.array([convert_pose(np.array(f["transform_matrix"]), "opengl", "opencv") for f in frames])
@@ -376,10 +376,10 @@ def test_operations_endpoints(ready) -> None:
 
 def _baked_ready_scene(app, owner: str = "local") -> tuple[str, dict]:
     """A ready scene whose baked MPI comes from an untrained model (no job ran), and a camera."""
-    from cmc.baking import bake
     from cmc.config import preset_config
-    from cmc.datasets import synthetic_scene
-    from cmc.training import Trainer
+    from cmc.data.datasets import synthetic_scene
+    from cmc.method.training import Trainer
+    from cmc.serving.baking import bake
 
     svc = app.state.services
     rec, _ = svc.store.create(owner, {}, ["a.png", "b.png"], ["00.png", "01.png"], False)
@@ -394,7 +394,7 @@ def _baked_ready_scene(app, owner: str = "local") -> tuple[str, dict]:
 
 
 def test_renders_never_hold_up_probes_and_status(api, monkeypatch) -> None:
-    from cmc.baking import BakedScene
+    from cmc.serving.baking import BakedScene
 
     app = create_app(settings_for(api.storage.parent, render_concurrency=2, render_queue=4), queue=RecordingQueue())
     sid, camera = _baked_ready_scene(app)

@@ -36,8 +36,8 @@ import yaml
 from helpers import PG_ADMIN, REDIS_URL, S3_CREDENTIALS, new_bucket, render_body, synthetic_upload, throwaway_postgres
 from PIL import Image
 
-from cmc.datasets import DEFAULT_LAYERS, render_layers
-from cmc.metrics import psnr
+from cmc.data.datasets import DEFAULT_LAYERS, render_layers
+from cmc.eval.metrics import psnr
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""The compiled CPU renderer of baked MPIs (cmc.texture_kernel) against the slow per-plane twin."""
+"""The compiled CPU renderer of baked MPIs (cmc.serving.texture_kernel) against the slow per-plane twin."""
 
 from __future__ import annotations
 
@@ -8,11 +8,21 @@ import numpy as np
 import pytest
 import torch
 
-from cmc._reference import render_texture_image_reference
-from cmc.baking import BakedScene
-from cmc.cameras import look_at
-from cmc.rendering import MPIFrame, blend, render_texture_image
-from cmc.texture_kernel import COLS, ROWS, TILE, MPIGeometry, PackedTextures, occupancy, occupied_tiles, reach, render
+from cmc.geometry.cameras import look_at
+from cmc.mpi._reference import render_texture_image_reference
+from cmc.mpi.rendering import MPIFrame, blend, render_texture_image
+from cmc.serving.baking import BakedScene
+from cmc.serving.texture_kernel import (
+    COLS,
+    ROWS,
+    TILE,
+    MPIGeometry,
+    PackedTextures,
+    occupancy,
+    occupied_tiles,
+    reach,
+    render,
+)
 
 W, H, D = 40, 30, 6
 K = np.array([[36.0, 0, W / 2], [0, 36.0, H / 2], [0, 0, 1]])
@@ -40,7 +50,7 @@ def _premultiplied(tex: np.ndarray) -> torch.Tensor:
 
 
 def _twin(textures: list[np.ndarray], frames: list[MPIFrame], weights: np.ndarray, P: np.ndarray, size=(W, H)):
-    """The slow per-plane twin of every MPI, blended as cmc.rendering.render_image blends them."""
+    """The slow per-plane twin of every MPI, blended as cmc.mpi.rendering.render_image blends them."""
     Kt, Pt = torch.as_tensor(K, dtype=torch.float32), torch.as_tensor(P, dtype=torch.float32)
     outs = [
         render_texture_image_reference(_premultiplied(t), f, Kt, Pt, *size)
@@ -119,7 +129,7 @@ def test_kernel_equals_the_slow_twin_at_sizes_that_leave_blocks_part_full(camera
 @pytest.mark.parametrize("camera", ["reference", "sideways", "outside the capture", "behind all planes, looking back"])
 def test_bicubic_colour_in_the_kernel_is_the_torch_renderers(camera):
     """``colour_interpolation="bicubic"``: the kernel (alpha bilinear, straight colour over 4 x 4
-    texels, edges repeated) against cmc.rendering's whole-image path given the straight colours,
+    texels, edges repeated) against cmc.mpi.rendering's whole-image path given the straight colours,
     with every plane's colours noisy so that a wrong tap shows; on 1 and 3 threads, and with
     empty blocks and transparent samples skipped or not (skipping stays exact)."""
     tex = _textures(np.random.default_rng(8))
@@ -222,10 +232,10 @@ def test_packed_textures_keep_the_texels():
 
 
 def test_baked_scene_keeps_only_the_8_bit_textures(tmp_path):
-    from cmc.baking import bake
     from cmc.config import preset_config
-    from cmc.datasets import synthetic_scene
-    from cmc.training import Trainer
+    from cmc.data.datasets import synthetic_scene
+    from cmc.method.training import Trainer
+    from cmc.serving.baking import bake
 
     scene = synthetic_scene(num_views=2, width=32, height=24)
     trainer = Trainer(scene, preset_config("fast", steps=2, rays_per_view=64, unseen_rays=64))
@@ -241,10 +251,10 @@ def test_render_cache_is_bounded_by_bytes(tmp_path):
     """The service's cache of loaded scenes (keyed by storage folder) drops the least recently used
     beyond its byte budget, but never the scene it just loaded; loading a scene's final bake drops
     its preview; a folder with nothing stored is FileNotFoundError."""
-    from cmc.baking import bake
     from cmc.config import preset_config
-    from cmc.datasets import synthetic_scene
-    from cmc.training import Trainer
+    from cmc.data.datasets import synthetic_scene
+    from cmc.method.training import Trainer
+    from cmc.serving.baking import bake
     from service.renders import BakedCache
     from service.storage import LocalStorage
 

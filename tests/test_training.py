@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from cmc.config import TrainConfig, preset_config
-from cmc.datasets import DEFAULT_LAYERS, SceneError, render_layers, synthetic_cameras, synthetic_scene
-from cmc.metrics import psnr
-from cmc.training import Trainer, TrainingCancelled, load_model, lr_at
+from cmc.data.datasets import DEFAULT_LAYERS, SceneError, render_layers, synthetic_cameras, synthetic_scene
+from cmc.eval.metrics import psnr
+from cmc.method.training import Trainer, TrainingCancelled, load_model, lr_at
 
 W, H = 64, 48
 

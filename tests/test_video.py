@@ -7,13 +7,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cmc.baking import BakedScene, bake
 from cmc.cli import main
 from cmc.config import preset_config
-from cmc.datasets import synthetic_scene
-from cmc.metrics import psnr
-from cmc.training import Trainer
-from cmc.video import path_cameras, render_path_video
+from cmc.data.datasets import synthetic_scene
+from cmc.eval.metrics import psnr
+from cmc.method.training import Trainer
+from cmc.serving.baking import BakedScene, bake
+from cmc.serving.video import path_cameras, render_path_video
 
 W, H = 64, 48
 LUMA = np.array([[0.299], [0.587], [0.114]])  # RGB -> Y (BT.601)

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from cmc.cameras import pixel_rays
 from cmc.config import preset_config, with_settings
-from cmc.datasets import WIDE_SCENES, render_layers, synthetic_scene, wide_baseline_split
-from cmc.losses import alpha_and_transmittance, alpha_entropy, distortion
-from cmc.metrics import psnr
-from cmc.rendering import RayOutput, composite, pixel_centers, render_rays
-from cmc.training import Trainer
+from cmc.data.datasets import WIDE_SCENES, render_layers, synthetic_scene, wide_baseline_split
+from cmc.eval.metrics import psnr
+from cmc.geometry.cameras import pixel_rays
+from cmc.method.losses import alpha_and_transmittance, alpha_entropy, distortion
+from cmc.method.training import Trainer
+from cmc.mpi.rendering import RayOutput, composite, pixel_centers, render_rays
 
 W, H = 64, 48
 
@@ -176,8 +176,8 @@ def test_with_settings_parses_and_rejects():
 def test_tilted_layer_depth_is_the_ray_plane_intersection():
     """A wall z = 5 + 0.5 x seen by a camera at the origin looking along +z: the centre pixel's
     depth is 5, and a pixel whose ray has x/z = r meets it at z = 5 / (1 - 0.5 r)."""
-    from cmc.cameras import Cameras, intrinsics
-    from cmc.datasets import Layer, render_layers
+    from cmc.data.datasets import Layer, render_layers
+    from cmc.geometry.cameras import Cameras, intrinsics
 
     K = intrinsics(100.0, 100.0, 50.0, 40.0)
     cams = Cameras(K[None], np.eye(4)[None], 100, 80)
@@ -191,7 +191,7 @@ def test_wide_baseline_split_cameras():
     """Halfway views sit at the midpoints of input pairs, near views 5 % of the baseline from an
     input towards the others, beyond views half the baseline from an input away from them; every
     camera looks at (0, 0, 4); the exact depth matches the images' cameras."""
-    from cmc.datasets import WIDE_SCENES, wide_baseline_split
+    from cmc.data.datasets import WIDE_SCENES, wide_baseline_split
 
     split = wide_baseline_split("cards", width=64, height=48)
     assert set(WIDE_SCENES) >= {"cards", "posts", "slanted"}
@@ -216,7 +216,7 @@ def test_robust_depth_consistency_corrects_small_and_tolerates_large_disagreemen
     """On normalised disparity, log(1 + (ds / scale)^2): zero for agreeing MPIs, log 2 at one
     scale apart; its pull (gradient) on a depth peaks near one scale and falls for a disagreement
     as large as an occluder in front of a wall, where the squared loss pulls hardest."""
-    from cmc.losses import depth_consistency, robust_depth_consistency
+    from cmc.method.losses import depth_consistency, robust_depth_consistency
 
     near, far, scale = 1.0, 10.0, 0.05
 
@@ -298,7 +298,7 @@ def test_a_base_colour_per_plane_group_gives_hidden_surfaces_their_own_texture()
 
 def test_background_colour_continues_behind_every_surface():
     """``cards``: the groups of planes behind a texel's visible surface start with the background
-    continued from nearby (:func:`cmc.model.hidden_layer_colours`) at every texel
+    continued from nearby (:func:`cmc.method.model.hidden_layer_colours`) at every texel
     (``model.pyramid.hidden_colour_everywhere``), instead of the photo's colour, the
     card's where it hides the wall. Where a card hides the wall in the reference photo, the
     wall's plane then holds wall colours, not the card's, at the start and still after training
@@ -354,9 +354,9 @@ def test_content_plane_depths_put_planes_at_the_layers(tmp_path):
     """With ``model.plane_density_floor`` below 1 the model's planes (the same in every MPI, and
     in the bake) crowd at the depths where the plane sweep finds the scene's layers: each layer
     of the synthetic scene lies nearer a plane, in disparity, than with uniform planes."""
-    from cmc.baking import BakedScene, bake
-    from cmc.datasets import DEFAULT_LAYERS
-    from cmc.model import CMCModel
+    from cmc.data.datasets import DEFAULT_LAYERS
+    from cmc.method.model import CMCModel
+    from cmc.serving.baking import BakedScene, bake
 
     scene = synthetic_scene(num_views=3, width=W, height=H)
     base = preset_config("fast").model
@@ -378,7 +378,7 @@ def test_content_plane_depths_put_planes_at_the_layers(tmp_path):
 
 
 def test_exposure_response_converts_between_photos():
-    from cmc.model import ExposureResponse
+    from cmc.method.model import ExposureResponse
 
     exp = ExposureResponse(3)
     rgb = torch.rand(5, 3)
@@ -442,7 +442,7 @@ def test_exposure_compensation_learns_the_gains_and_keeps_the_geometry():
 def test_occupied_depth_range_known_answers():
     """Surfaces on planes 10-20 of 41 (none elsewhere): the range is those planes' depths widened by
     15 % of their disparity span plus one plane spacing each side; a share in the tails is cut."""
-    from cmc.geometry import occupied_depth_range, plane_depths
+    from cmc.geometry.planes import occupied_depth_range, plane_depths
 
     near, far, D = 1.0, 100.0, 41
     disp = 1 / plane_depths(near, far, D)
@@ -464,7 +464,7 @@ def test_planes_fit_the_scene_whatever_the_near_bound():
     training renders the test views within 0.3 dB of the run with the tight bound. Without the fit
     far fewer planes lie where the scene is (at this size the views lose 0.15 dB; on real scenes with
     loose bounds 0.9-1.8 dB: bench/SCENES.md)."""
-    from cmc.model import CMCModel
+    from cmc.method.model import CMCModel
 
     W2, H2 = 84, 63
     split = wide_baseline_split("cards", W2, H2)

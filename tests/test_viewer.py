@@ -22,13 +22,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from cmc.baking import BakedScene, bake
-from cmc.camera_paths import mean_pose
 from cmc.config import preset_config
-from cmc.datasets import synthetic_cameras, synthetic_scene
-from cmc.diagnostics import depth_preview
-from cmc.metrics import psnr
-from cmc.training import Trainer
+from cmc.data.datasets import synthetic_cameras, synthetic_scene
+from cmc.eval.diagnostics import depth_preview
+from cmc.eval.metrics import psnr
+from cmc.geometry.camera_paths import mean_pose
+from cmc.method.training import Trainer
+from cmc.serving.baking import BakedScene, bake
 
 VIEWER = Path(__file__).resolve().parent.parent / "service" / "static" / "viewer.html"
 W, H = 80, 60
@@ -132,7 +132,7 @@ def test_drag_moves_the_camera(site, static_url, page):
     before = _frame(page, 1)
     start = page.evaluate("() => window.cmcViewer.getCamera()")
     pose0 = np.array(start["world_from_cam"])
-    # The start view is the mean input camera (cmc.camera_paths.mean_pose) with view 0's intrinsics,
+    # The start view is the mean input camera (cmc.geometry.camera_paths.mean_pose) with view 0's intrinsics,
     # scaled to the canvas: the 900x700 window fits 900x675 at the photos' 4:3, which renders at
     # twice the photos' size (the most it upscales).
     baked = BakedScene.load(site / "baked")

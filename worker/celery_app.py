@@ -37,7 +37,7 @@ import billiard.process
 from celery import Celery
 from celery.signals import worker_init, worker_ready, worker_shutting_down
 
-from cmc.images import MemoryBudget
+from cmc.data.images import MemoryBudget
 from service.db.scenes import SceneStore
 from service.jobs import TASK_NAMES, CeleryJobQueue, task_queues
 from service.settings import Settings, load_settings

@@ -8,7 +8,7 @@ import threading
 import uuid
 from dataclasses import dataclass, field
 
-from cmc.images import MemoryBudget
+from cmc.data.images import MemoryBudget
 from service.db.scenes import SceneStore
 from service.jobs import JobQueue
 from service.settings import Settings

@@ -16,7 +16,7 @@ import queue
 import threading
 from collections.abc import Callable
 
-from cmc.images import MemoryBudget
+from cmc.data.images import MemoryBudget
 from service.db.rows import Phase
 from service.db.scenes import SceneStore
 from service.settings import Settings

@@ -50,7 +50,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from cmc.config import TrainConfig
-    from cmc.training import Progress, Trainer
+    from cmc.method.training import Progress, Trainer
 
 log = logging.getLogger("cmc.worker")
 
@@ -205,15 +205,15 @@ POSE_STAGE_PROGRESS = {
 
 
 def _training_prior_s(options: dict[str, Any]) -> float:
-    """Seconds of training and baking, at the reference's speed (cmc.eta), for the scene's options."""
-    from cmc.eta import PRESET_STEPS, reference_training_s
+    """Seconds of training and baking, at the reference's speed (cmc.method.eta), for the scene's options."""
+    from cmc.method.eta import PRESET_STEPS, reference_training_s
 
     return reference_training_s(options.get("steps") or PRESET_STEPS[options["preset"]])
 
 
 def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
-    from cmc.datasets import CAMERAS_FILE
-    from cmc.eta import REFERENCE_POSES_S
+    from cmc.data.datasets import CAMERAS_FILE
+    from cmc.method.eta import REFERENCE_POSES_S
     from cmc.poses import PoseEstimationCancelled, PoseOptions, estimate_poses, poses_from_client
 
     later_s = _training_prior_s(rec.options)
@@ -341,8 +341,8 @@ class _TrainPhase:
     (``step_s`` seconds each, measured once it trains), a bake as ``bake_cost`` steps."""
 
     def __init__(self, ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path):
-        from cmc.datasets import load_scene_folder
-        from cmc.eta import REFERENCE_STEP_S, bake_steps
+        from cmc.data.datasets import load_scene_folder
+        from cmc.method.eta import REFERENCE_STEP_S, bake_steps
 
         self.ctx, self.rec, self.hb, self.layout = ctx, rec, hb, SceneLayout(rec.id)
         self.scene = load_scene_folder(scene_dir)
@@ -364,7 +364,7 @@ class _TrainPhase:
 
     def build(self) -> None:
         """The model (plane sweeps: seconds to minutes), at the stored checkpoint when usable."""
-        from cmc.training import Trainer
+        from cmc.method.training import Trainer
 
         cfg, hb = self.cfg, self.hb
         hb.set(
@@ -393,7 +393,7 @@ class _TrainPhase:
 
     def _bake_preview(self) -> None:
         """Bake the model as it is now and publish it as the scene's preview (whole, or not at all)."""
-        from cmc.baking import MANIFEST, bake
+        from cmc.serving.baking import MANIFEST, bake
 
         cfg, hb, step = self.cfg, self.hb, self.trainer.step
         hb.set(detail=f"baking a preview at step {step} of {cfg.steps}")
@@ -429,7 +429,7 @@ class _TrainPhase:
 
     def train(self, checkpoint: Path) -> float:
         """Train to the last step (checkpoints written at ``checkpoint``); the seconds it took."""
-        from cmc.training import TrainingCancelled
+        from cmc.method.training import TrainingCancelled
 
         t0 = time.perf_counter()
         try:
@@ -447,7 +447,7 @@ class _TrainPhase:
 
     def bake_final(self, train_s: float) -> None:
         """Publish the final bake, make the scene ready, and drop the checkpoint and the preview."""
-        from cmc.baking import MANIFEST, bake
+        from cmc.serving.baking import MANIFEST, bake
 
         ctx, hb, layout = self.ctx, self.hb, self.layout
         hb.set(
@@ -478,8 +478,8 @@ def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
     storage, if its build record (service.db.videos) can be claimed. Progress renews the lease at
     most once a second; a cancelled or lost build stops at the next frame. Returns 'skipped',
     'done', 'failed' or 'stopped'."""
-    from cmc.baking import BakedScene
-    from cmc.video import render_path_video
+    from cmc.serving.baking import BakedScene
+    from cmc.serving.video import render_path_video
 
     s, videos = ctx.settings, ctx.store.videos
     rec = ctx.store.get(scene_id)

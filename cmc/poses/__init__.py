@@ -14,9 +14,9 @@ Both entry points write a *scene folder* that ``cmc train`` reads directly: ``im
   diagnoses failures, :mod:`cmc.poses.bounds` derives near/far, :mod:`cmc.poses.colmap` is the
   only module that knows COLMAP's conventions and files.
 
-Conventions are :mod:`cmc.cameras`' (OpenCV axes, camera-to-world, pixel corner at 0); depth
+Conventions are :mod:`cmc.geometry.cameras`' (OpenCV axes, camera-to-world, pixel corner at 0); depth
 bounds are camera z in scene units. Aligning two reconstructions (benchmarks) is
-:mod:`cmc.alignment`; the ``cmc poses`` command is in :mod:`cmc.cli`.
+:mod:`cmc.eval.alignment`; the ``cmc poses`` command is in :mod:`cmc.cli`.
 """
 
 from cmc.errors import PoseEstimationError

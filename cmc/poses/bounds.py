@@ -1,6 +1,6 @@
 """Near and far depth bounds of each view: from a reconstruction's points, or by triangulating
 matched features with known cameras. Depths are camera z in scene units; pixels follow
-:mod:`cmc.cameras` (corner at 0)."""
+:mod:`cmc.geometry.cameras` (corner at 0)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from cmc.cameras import CameraError, Cameras, pixel_rays
 from cmc.errors import PoseEstimationError
+from cmc.geometry.cameras import CameraError, Cameras, pixel_rays
 from cmc.poses.intake import Matches, Photos
 from cmc.poses.options import SUGGESTION, SparsePoints
 

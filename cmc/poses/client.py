@@ -12,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from cmc.cameras import (
+from cmc.errors import PoseEstimationError
+from cmc.geometry.cameras import (
     CameraError,
     CameraFile,
     Cameras,
@@ -21,7 +22,6 @@ from cmc.cameras import (
     load_camera_file,
     match_frames,
 )
-from cmc.errors import PoseEstimationError
 from cmc.poses.bounds import near_far_by_triangulation
 from cmc.poses.colmap import Cancel, import_pycolmap, quiet
 from cmc.poses.intake import (

@@ -2,7 +2,7 @@
 model files, and its cancellation and logging.
 
 COLMAP stores world-to-camera poses (``cam_from_world``) with the same axes and pixel convention as
-:mod:`cmc.cameras`; the one conversion is :func:`world_from_cam`. Pinned: pycolmap 4.2.1 (its
+:mod:`cmc.geometry.cameras`; the one conversion is :func:`world_from_cam`. Pinned: pycolmap 4.2.1 (its
 Python API changes between releases).
 """
 
@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from cmc.cameras import CameraError, Cameras
 from cmc.errors import PoseEstimationError
+from cmc.geometry.cameras import CameraError, Cameras
 from cmc.poses.options import PoseEstimationCancelled, SparsePoints
 
 
@@ -30,7 +30,7 @@ def cameras_from_colmap(reconstruction: Any, image_names: Sequence[str]) -> Came
     """Cameras of the named registered images of a ``pycolmap.Reconstruction``.
 
     COLMAP keeps ``cam_from_world`` (world -> camera, x right / y down / z forward) and puts the
-    image's top-left corner at (0, 0) with pixel centres at +0.5, exactly like :mod:`cmc.cameras`;
+    image's top-left corner at (0, 0) with pixel centres at +0.5, exactly like :mod:`cmc.geometry.cameras`;
     so K is COLMAP's calibration matrix unchanged and ``world_from_cam`` is the rigid inverse.
 
     Args:

@@ -20,10 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from cmc.cameras import CameraFile, Cameras, PoseConvention, save_camera_file
-from cmc.datasets import CAMERAS_FILE, SceneError
+from cmc.data.datasets import CAMERAS_FILE, SceneError
+from cmc.data.images import MemoryBudget, PhotoInfo, load_resized, read_photo_info, resized_size, save_png
 from cmc.errors import PoseEstimationError
-from cmc.images import MemoryBudget, PhotoInfo, load_resized, read_photo_info, resized_size, save_png
+from cmc.geometry.cameras import CameraFile, Cameras, PoseConvention, save_camera_file
 from cmc.poses.colmap import Cancel
 from cmc.poses.options import PoseResult, SparsePoints
 

@@ -1,6 +1,6 @@
 """What pose estimation takes and gives: :class:`PoseOptions`, :class:`PoseResult`, cancellation.
 
-Conventions are :mod:`cmc.cameras`' (OpenCV axes, camera-to-world, pixel corner at 0); depth
+Conventions are :mod:`cmc.geometry.cameras`' (OpenCV axes, camera-to-world, pixel corner at 0); depth
 bounds are camera z in scene units.
 """
 
@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from cmc.cameras import CameraFile, PoseConvention
-from cmc.images import MAX_PIXELS, MemoryBudget
+from cmc.data.images import MAX_PIXELS, MemoryBudget
+from cmc.geometry.cameras import CameraFile, PoseConvention
 
 # the remedy a PoseEstimationError about the photos ends with
 SUGGESTION = (
@@ -43,7 +43,7 @@ class PoseOptions:
             'opencv'); None: 'opengl' for SfM, the input file's for client poses.
         verbose: let COLMAP log to stderr.
         decode_memory: the budget the photo decodes share with the process's other decodes
-            (:meth:`cmc.images.MemoryBudget.reserve`); None: they wait for none.
+            (:meth:`cmc.data.images.MemoryBudget.reserve`); None: they wait for none.
     """
 
     long_side: int = 504

@@ -12,9 +12,9 @@ from typing import Any
 
 import numpy as np
 
-from cmc.camera_paths import mean_pose
-from cmc.cameras import Cameras
 from cmc.errors import PoseEstimationError
+from cmc.geometry.camera_paths import mean_pose
+from cmc.geometry.cameras import Cameras
 from cmc.poses.bounds import near_far_from_points
 from cmc.poses.colmap import Cancel, cameras_from_colmap, import_pycolmap, quiet, sparse_points_from_colmap
 from cmc.poses.intake import (
@@ -115,7 +115,7 @@ def estimate_poses(
 
 def upright(cameras: Cameras, sparse: SparsePoints) -> tuple[Cameras, SparsePoints]:
     """The reconstruction turned about the world origin so that its mean camera
-    (:func:`cmc.camera_paths.mean_pose`) looks down world -z with the photos' up along world +y,
+    (:func:`cmc.geometry.camera_paths.mean_pose`) looks down world -z with the photos' up along world +y,
     the axes of OpenGL and ARKit. SfM's own frame is a photo's OpenCV axes, where up is -y: a
     client that moves a camera of this scene with +y up (a look-at, an orbit) would turn the view
     upside down. Depths, near/far and every relative pose are unchanged."""

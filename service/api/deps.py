@@ -11,7 +11,7 @@ from typing import Annotated, Any
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from cmc.images import MemoryBudget
+from cmc.data.images import MemoryBudget
 from service.auth import KeyRing
 from service.db.rows import SceneRecord
 from service.db.scenes import SceneStore

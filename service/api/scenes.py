@@ -294,7 +294,7 @@ def get_cameras(
     owner: Owner,
     convention: Literal["opengl", "opencv"] = "opengl",
 ) -> dict:
-    from cmc.cameras import CameraFile, camera_file_to_dict, load_camera_file
+    from cmc.geometry.cameras import CameraFile, camera_file_to_dict, load_camera_file
 
     rec = owned_scene(svc, scene_id, owner)
     with svc.storage.reading(SceneLayout(scene_id).cameras) as path:

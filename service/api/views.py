@@ -66,7 +66,7 @@ Coverage = Annotated[
 
 def _camera(body: RenderCamera, settings: Settings) -> tuple[np.ndarray, np.ndarray, int, int]:
     """K [3, 3] and world_from_cam [4, 4] in the OpenCV convention, width, height."""
-    from cmc.cameras import CameraError, camera_from_frame
+    from cmc.geometry.cameras import CameraError, camera_from_frame
 
     if body.w * body.h > settings.max_render_pixels:
         raise APIError(422, ErrorCode.render_too_large, f"w * h must be at most {settings.max_render_pixels} pixels")
@@ -91,8 +91,8 @@ def get_camera_path(
     frames: Annotated[int, Query(ge=1, le=1000, description="cameras along the closed path")] = 30,
     convention: Literal["opengl", "opencv"] = "opengl",
 ) -> CameraPath:
-    from cmc.camera_paths import baked_path_cameras
-    from cmc.cameras import CameraFile, camera_file_to_dict
+    from cmc.geometry.camera_paths import baked_path_cameras
+    from cmc.geometry.cameras import CameraFile, camera_file_to_dict
 
     manifest = json.loads(_manifest(svc, scene_id, owner)[1])  # a preview's cameras are the final's
     cams = baked_path_cameras(manifest, path, frames)
@@ -275,8 +275,8 @@ async def export_glb(
         int | None, Query(ge=0, description="which input view's MPI (default: the one nearest the mean camera)")
     ] = None,
 ) -> Response:
-    from cmc.gltf import export_glb as build
-    from cmc.gltf import nearest_mpi
+    from cmc.serving.gltf import export_glb as build
+    from cmc.serving.gltf import nearest_mpi
 
     rec = await run_in_threadpool(ready_scene, svc, scene_id, owner)
     layout = SceneLayout(scene_id)

@@ -3,7 +3,7 @@ training spends most of its time on.
 
 :func:`sample_planes` computes ``sum_t grid_sample(textures[t], grid)`` as
 :func:`torch.nn.functional.grid_sample` does (bilinear or bicubic, ``align_corners=False``,
-zero outside the texture), for the per-plane textures of :class:`cmc.fields.PyramidPlaneField`. On the CPU,
+zero outside the texture), for the per-plane textures of :class:`cmc.mpi.fields.PyramidPlaneField`. On the CPU,
 torch's backward of ``grid_sample`` allocated and zeroed a gradient the size of every texture
 per call and scattered into it at about half the speed of the kernel here; a training step of
 fern spent about half its time there (bench/RESULTS.md, section "Training time").

@@ -1,6 +1,6 @@
 """The CMC losses (paper Eq. 4.5-4.8) over renders of the same rays by every MPI.
 
-Every function takes ``outs``: one :class:`cmc.rendering.RayOutput` per MPI, all for the same
+Every function takes ``outs``: one :class:`cmc.mpi.rendering.RayOutput` per MPI, all for the same
 R target rays. A ray counts for an MPI only where that MPI's planes cover it (accumulated alpha
 > 0.5, treated as a constant mask): outside its extent an MPI renders nothing, and asking it to
 match a colour there would only add a constant to the loss.
@@ -18,7 +18,7 @@ from itertools import combinations
 
 import torch
 
-from cmc.rendering import RayOutput
+from cmc.mpi.rendering import RayOutput
 
 
 def _mask(o: RayOutput) -> torch.Tensor:

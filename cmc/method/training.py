@@ -6,7 +6,7 @@ uninterrupted run makes: resuming reproduces the uninterrupted result to float t
 
 Unseen poses (for L_ac, L_dc): a random convex combination of the input camera centres plus
 Gaussian jitter (``unseen_jitter`` mean baselines), with the same weighted mean of the input
-rotations (:func:`cmc.geometry.sample_virtual_pose`), intrinsics of input view 0; rays are
+rotations (:func:`cmc.geometry.planes.sample_virtual_pose`), intrinsics of input view 0; rays are
 uniform random pixels of that camera.
 """
 
@@ -24,11 +24,11 @@ import numpy as np
 import torch
 
 from cmc.config import LossConfig, TrainConfig
-from cmc.datasets import Scene, validate_scene
+from cmc.data.datasets import Scene, validate_scene
 from cmc.errors import CheckpointError
-from cmc.eta import TrainingETA
-from cmc.geometry import sample_virtual_pose
-from cmc.losses import (
+from cmc.geometry.planes import sample_virtual_pose
+from cmc.method.eta import TrainingETA
+from cmc.method.losses import (
     alpha_entropy,
     appearance_consistency,
     depth_consistency,
@@ -36,8 +36,8 @@ from cmc.losses import (
     reconstruction_loss,
     robust_depth_consistency,
 )
-from cmc.model import CMCModel
-from cmc.rendering import render_ray_groups
+from cmc.method.model import CMCModel
+from cmc.mpi.rendering import render_ray_groups
 
 CHECKPOINT_VERSION = 1
 
@@ -52,7 +52,7 @@ class Progress:
 
     Attributes: step (completed steps), total, losses (name -> value of the last step),
     elapsed_s (this process's training seconds), eta_s (estimated seconds left in training, each
-    loss phase at its own step time: :class:`cmc.eta.TrainingETA`).
+    loss phase at its own step time: :class:`cmc.method.eta.TrainingETA`).
     """
 
     step: int
@@ -152,7 +152,7 @@ class Trainer:
         """n random pixel indices, in row-major order, and their centre coordinates [n, 2].
 
         In order, neighbouring rays sample neighbouring texels: the textures' samples and their
-        gradients stay in the CPU's caches (cmc.plane_sampling samples about twice as fast so,
+        gradients stay in the CPU's caches (cmc.mpi.plane_sampling samples about twice as fast so,
         in a one-off timing on fern's finest level)."""
         w, h = self.scene.cameras.width, self.scene.cameras.height
         idx = torch.randint(0, w * h, (n,), generator=gen).sort().values.to(self.device)

@@ -23,13 +23,13 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from cmc.baking import BakedScene, bake
 from cmc.config import TrainConfig
-from cmc.datasets import Scene, load_llff, save_image, wide_baseline_split
-from cmc.diagnostics import contact_sheet, depth_error_map, depth_preview, error_map
-from cmc.metrics import image_metrics, psnr
-from cmc.rendering import ImageOutput
-from cmc.training import Progress, Trainer
+from cmc.data.datasets import Scene, load_llff, save_image, wide_baseline_split
+from cmc.eval.diagnostics import contact_sheet, depth_error_map, depth_preview, error_map
+from cmc.eval.metrics import image_metrics, psnr
+from cmc.method.training import Progress, Trainer
+from cmc.mpi.rendering import ImageOutput
+from cmc.serving.baking import BakedScene, bake
 
 METRICS = ("psnr", "ssim", "lpips_alex", "lpips_vgg")
 ScoredViews = Literal["test", "val"]
@@ -263,7 +263,7 @@ def run_synthetic_bench(
     input_gains: list[float] | None = None,
     near_scale: float = 1.0,
 ) -> dict[str, Any]:
-    """The wide-baseline synthetic set (:func:`cmc.datasets.wide_baseline_split`): train on each
+    """The wide-baseline synthetic set (:func:`cmc.data.datasets.wide_baseline_split`): train on each
     scene's three inputs, bake, and score the halfway, near and beyond test views separately
     (colour metrics and the median relative depth error against the exact depth).
 
@@ -295,7 +295,7 @@ def run_synthetic_bench(
     for k in ("train_seconds", "render_ms_median"):
         mean[k] = float(np.mean([r[k] for r in records]))
     return {
-        "protocol": "wide-baseline synthetic scenes (cmc.datasets.wide_baseline_split), 252x189, 3 input views; "
+        "protocol": "wide-baseline synthetic scenes (cmc.data.datasets.wide_baseline_split), 252x189, 3 input views; "
         "test views halfway between two inputs, near each input and beyond each input",
         **({"input_gains": input_gains} if input_gains is not None else {}),
         **({"near_scale": near_scale} if near_scale != 1 else {}),

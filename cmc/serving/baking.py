@@ -5,13 +5,13 @@ On-disk format ``cmc-mpi`` version 1 (a folder; every file is browser-loadable):
 * ``mpi.json``::
 
     {"format": "cmc-mpi", "version": 1,
-     "convention": "opencv",          # camera axes x right, y down, z forward; see cmc.cameras
+     "convention": "opencv",          # camera axes x right, y down, z forward; see cmc.geometry.cameras
      "width": W, "height": H,         # size of the input images (pixels)
      "near": n, "far": f,             # plane range, scene units
      "blend": {"weights": "inverse_square_distance", "eps_baseline_fraction": 0.1,
-               "baseline": b},        # see cmc.geometry.blend_weights
+               "baseline": b},        # see cmc.geometry.planes.blend_weights
      "colour_interpolation": "bicubic",  # or "bilinear" (the default where absent): how a
-                                      # render samples colour between texels (cmc.texture_kernel.render)
+                                      # render samples colour between texels (cmc.serving.texture_kernel.render)
      "mpis": [{"K": 3x3,              # reference intrinsics, pixels, corner-origin
                "world_from_cam": 4x4, # reference camera-to-world
                "depths": [D floats],  # plane depths (reference camera z), nearest first
@@ -27,9 +27,9 @@ On-disk format ``cmc-mpi`` version 1 (a folder; every file is browser-loadable):
   the tile spans the image's extent enlarged ``m`` times about the image centre.
 
 Rendering composites each MPI front to back and blends them as
-:func:`cmc.rendering.render_image` does: on the CPU with the compiled kernel of
-:mod:`cmc.texture_kernel` straight from the 8-bit textures, elsewhere with that function over
-:class:`cmc.fields.TextureField` fields.
+:func:`cmc.mpi.rendering.render_image` does: on the CPU with the compiled kernel of
+:mod:`cmc.serving.texture_kernel` straight from the 8-bit textures, elsewhere with that function over
+:class:`cmc.mpi.fields.TextureField` fields.
 """
 
 from __future__ import annotations
@@ -44,16 +44,16 @@ import numpy as np
 import torch
 from PIL import Image
 
-from cmc.cameras import Cameras, pixel_rays
-from cmc.fields import MPIField, TextureField
-from cmc.geometry import mean_baseline, texel_grid
-from cmc.images import to_uint8
-from cmc.model import CMCModel
-from cmc.plane_sampling import INTERPOLATIONS
-from cmc.rendering import ImageOutput, MPIFrame, blend_selection, render_image
+from cmc.data.images import to_uint8
+from cmc.geometry.cameras import Cameras, pixel_rays
+from cmc.geometry.planes import mean_baseline, texel_grid
+from cmc.method.model import CMCModel
+from cmc.mpi.fields import MPIField, TextureField
+from cmc.mpi.plane_sampling import INTERPOLATIONS
+from cmc.mpi.rendering import ImageOutput, MPIFrame, blend_selection, render_image
 
 if TYPE_CHECKING:
-    from cmc.texture_kernel import MPIGeometry, PackedTextures
+    from cmc.serving.texture_kernel import MPIGeometry, PackedTextures
 from cmc.errors import BakedFormatError
 
 # Baked alpha at or below this 8-bit count (under 1 % opacity) is stored as 0. Training leaves
@@ -192,10 +192,10 @@ class BakedScene:
     Attributes:
         packed: every MPI's [D, h, w, 4] uint8 straight-alpha planes (nearest first, the back
             plane opaque, alpha 255, as rendered) and their occupancy, as the compiled kernel
-            samples them (:class:`cmc.texture_kernel.PackedTextures`); the only copy of the
+            samples them (:class:`cmc.serving.texture_kernel.PackedTextures`); the only copy of the
             texels kept in memory.
         device: where :meth:`render` runs: the compiled kernel on the CPU
-            (:mod:`cmc.texture_kernel`), else :func:`cmc.rendering.render_image` over
+            (:mod:`cmc.serving.texture_kernel`), else :func:`cmc.mpi.rendering.render_image` over
             :attr:`fields` (built on first use).
     """
 
@@ -206,13 +206,15 @@ class BakedScene:
     near: float
     far: float
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
-    colour_interpolation: str = "bilinear"  # how renders sample colour between texels (cmc.texture_kernel.render)
+    colour_interpolation: str = (
+        "bilinear"  # how renders sample colour between texels (cmc.serving.texture_kernel.render)
+    )
     _fields: list[TextureField] | None = field(default=None, repr=False)
     _geometry: list[MPIGeometry] | None = field(default=None, repr=False)
 
     @staticmethod
     def load(folder: str | Path, device: str | torch.device = "cpu") -> BakedScene:
-        from cmc.texture_kernel import PackedTextures  # numba, imported when a scene is loaded
+        from cmc.serving.texture_kernel import PackedTextures  # numba, imported when a scene is loaded
 
         folder = Path(folder)
         try:
@@ -237,7 +239,7 @@ class BakedScene:
                 raise BakedFormatError(f"{name} is {atlas.shape[1]}x{atlas.shape[0]}, expected {cols * w}x{rows * h}")
             tex = atlas.reshape(rows, h, cols, w, 4).transpose(0, 2, 1, 3, 4).reshape(rows * cols, h, w, 4)[:D].copy()
             del atlas
-            tex[-1, ..., 3] = 255  # the back plane is opaque (cmc.fields)
+            tex[-1, ..., 3] = 255  # the back plane is opaque (cmc.mpi.fields)
             packed.fill(i, tex)
             t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device)  # noqa: E731
             frames.append(
@@ -282,7 +284,7 @@ class BakedScene:
 
     def coverage(self, K: np.ndarray, world_from_cam: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """[H, W] bool: the pixels of a render (its ``depth`` [H, W], target-camera z, 0 = no
-        surface) whose point an input photo saw (:meth:`cmc.cameras.Cameras.coverage`; each MPI's
+        surface) whose point an input photo saw (:meth:`cmc.geometry.cameras.Cameras.coverage`; each MPI's
         reference camera is an input photo's). The rest a view shows only by extrapolation."""
         inputs = Cameras(
             np.stack([f.K.cpu().numpy() for f in self.frames]).astype(np.float64),
@@ -303,15 +305,15 @@ class BakedScene:
         threads: int | None = None,
     ) -> ImageOutput:
         """Colour and depth for any camera (OpenCV convention), default size the input size;
-        the blend of all MPIs (:func:`cmc.rendering.render_image`), or MPI ``mpi_index`` alone.
+        the blend of all MPIs (:func:`cmc.mpi.rendering.render_image`), or MPI ``mpi_index`` alone.
         ``threads``: CPU threads for this render (default one per core)."""
         width, height = width or self.width, height or self.height
         if self.device.type != "cpu":
             return render_image(
                 self.fields, self.frames, K, world_from_cam, width, height, mpi_index, min_weight=min_weight
             )
-        from cmc.texture_kernel import MPIGeometry
-        from cmc.texture_kernel import render as render_packed
+        from cmc.serving.texture_kernel import MPIGeometry
+        from cmc.serving.texture_kernel import render as render_packed
 
         if self._geometry is None:
             self._geometry = [MPIGeometry.from_frame(f) for f in self.frames]

@@ -1,11 +1,11 @@
-"""Compiled CPU kernels of the plane sweep (:mod:`cmc.planesweep`): the census distance, the
+"""Compiled CPU kernels of the plane sweep (:mod:`cmc.method.planesweep`): the census distance, the
 edge-aware window sums and the semi-global aggregation, which took about half of the model build
 on the CPU as torch ops (one pass over the whole [D, h, w] cost volume per window offset, one
 batch of small ops per texel column of a path).
 
 Each kernel walks the texels once and keeps the planes of a texel contiguous (arrays laid out
 [h, w, D]), so a window offset costs one read of D contiguous floats instead of a pass over the
-volume. The torch versions in :mod:`cmc.planesweep` are the slow twins (and what runs on a GPU):
+volume. The torch versions in :mod:`cmc.method.planesweep` are the slow twins (and what runs on a GPU):
 each kernel does the same float32 operations in the same order, so the results are the same to
 the bit (``tests/test_planesweep.py``) and a model trained with them is the one trained without.
 Rows are split over threads: the result does not depend on the thread count.
@@ -50,7 +50,7 @@ def _census(g_ref, g_w, radius, out):  # pragma: no cover - compiled
 
 def census_distance(g_ref: torch.Tensor, g_w: torch.Tensor, radius: int) -> torch.Tensor:
     """Census distance of brightness images: reference [h, w], warped [D, h, w] (CPU, float32) ->
-    [D, h, w], as :func:`cmc.planesweep.census_distance` computes it from the colour images."""
+    [D, h, w], as :func:`cmc.method.planesweep.census_distance` computes it from the colour images."""
     hwd = np.ascontiguousarray(g_w.permute(1, 2, 0).numpy())
     out = np.empty_like(hwd)
     with kernel_cache.PARALLEL_LAUNCH:
@@ -78,7 +78,7 @@ def _window_sum(x_hwc, weights, window, out):  # pragma: no cover - compiled
 
 
 def window_sum(weights: torch.Tensor, window: int):
-    """The function [C, h, w] -> [C, h, w] of :func:`cmc.planesweep._window_mean` with the
+    """The function [C, h, w] -> [C, h, w] of :func:`cmc.method.planesweep._window_mean` with the
     window's weights given (CPU float32 [h, w, window^2], offsets row by row): the same sums in
     the same order, so the same result to the bit."""
     w = np.ascontiguousarray(weights.numpy())
@@ -96,7 +96,7 @@ def window_sum(weights: torch.Tensor, window: int):
 @numba.njit(**_JIT)
 def _sgm_step(prev, cost, p1, p2, new):  # pragma: no cover - compiled
     """One texel along a path: ``new[d] = cost[d] + min(prev[d], prev[d +- 1] + p1, min(prev) +
-    p2) - min(prev)``, in the order of operations of :func:`cmc.planesweep.semi_global_torch`."""
+    p2) - min(prev)``, in the order of operations of :func:`cmc.method.planesweep.semi_global_torch`."""
     D = prev.shape[0]
     low = prev[0]
     for d in range(1, D):
@@ -129,7 +129,7 @@ def _sgm_rows(cost, p1, p2, out):  # pragma: no cover - compiled
 
 
 def semi_global(cost: torch.Tensor, p1: float, p2: float) -> torch.Tensor:
-    """:func:`cmc.planesweep.semi_global` of a CPU float32 cost [D, h, w] -> [D, h, w]."""
+    """:func:`cmc.method.planesweep.semi_global` of a CPU float32 cost [D, h, w] -> [D, h, w]."""
     hwd = np.ascontiguousarray(cost.permute(1, 2, 0).numpy())
     whd = np.ascontiguousarray(cost.permute(2, 1, 0).numpy())
     rows, cols = np.empty_like(hwd), np.empty_like(whd)

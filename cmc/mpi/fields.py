@@ -4,7 +4,7 @@ A field answers, for rays that cross all D planes of its MPI, the colour and alp
 crossing. Crossings are given in *plane grid coordinates* ``g`` in [-1, 1]^2 (x right, y down),
 the ``grid_sample(align_corners=False)`` convention: g = (-1, -1) is the top-left corner of the
 plane's extent, which is the reference image enlarged by the MPI's margin (see
-:class:`cmc.rendering.MPIFrame`). Points outside [-1, 1] are masked by the renderer.
+:class:`cmc.mpi.rendering.MPIFrame`). Points outside [-1, 1] are masked by the renderer.
 
 Fields:
 * :class:`MLPField` -- the paper's: an MLP over (positional encoding of (g, plane coordinate),
@@ -31,8 +31,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cmc import plane_sampling
 from cmc.errors import ConfigError
+from cmc.mpi import plane_sampling
 
 
 class MPIField(nn.Module):
@@ -45,7 +45,7 @@ class MPIField(nn.Module):
     """
 
     num_planes: int
-    # How a bake of this field is to sample its colours between texels (cmc.baking records it):
+    # How a bake of this field is to sample its colours between texels (cmc.serving.baking records it):
     # "bilinear", or "bicubic" where the field itself samples its colours that way.
     colour_interpolation: str = "bilinear"
 
@@ -106,11 +106,11 @@ class PyramidFieldConfig:
     base_groups: int = 8  # base colours: one per group of adjacent planes (CMCModel: at most one per plane)
     # How rays sample the base colours: "bilinear", or "bicubic" (a sharper reconstruction: a
     # texture seen at another sub-texel phase than it was fitted at keeps its detail; the bake
-    # records it and the renderers sample the baked colour the same way, see cmc.baking).
+    # records it and the renderers sample the baked colour the same way, see cmc.serving.baking).
     base_interpolation: Literal["bilinear", "bicubic"] = "bicubic"
-    init_from_sweep: bool = True  # start alpha from the plane sweep (cmc.planesweep, ModelConfig.sweep)
+    init_from_sweep: bool = True  # start alpha from the plane sweep (cmc.method.planesweep, ModelConfig.sweep)
     # True: the base colours of the groups behind each texel's visible surface (the sweep's most
-    # probable plane) start as the background continued from nearby (cmc.model.hidden_layer_colours);
+    # probable plane) start as the background continued from nearby (cmc.method.model.hidden_layer_colours);
     # False: every group starts as the reference photo.
     hidden_colour_everywhere: bool = True
 
@@ -191,7 +191,7 @@ class PyramidPlaneField(MPIField):
 
     def _sample_torch(self, g: torch.Tensor, bounds: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
         """The base colours [D, 3, R] and the summed levels [D, 4, R] at g [R, D, 2], with
-        ``grid_sample`` (any device; :mod:`cmc.plane_sampling` computes the same on the CPU)."""
+        ``grid_sample`` (any device; :mod:`cmc.mpi.plane_sampling` computes the same on the CPU)."""
         grid = g.permute(1, 0, 2)[:, None]  # [D, 1, R, 2]
         base = torch.cat(
             [
@@ -215,7 +215,7 @@ class TextureField(MPIField):
 
     Alpha is sampled bilinearly; colour bilinearly too (zero outside), or with
     ``colour_interpolation="bicubic"`` by Keys' cubic kernel with the edge texels repeated,
-    clamped to [0, 1] (as :func:`cmc.texture_kernel.render` does).
+    clamped to [0, 1] (as :func:`cmc.serving.texture_kernel.render` does).
     """
 
     def __init__(self, rgba: torch.Tensor, colour_interpolation: str = "bilinear"):

@@ -1,8 +1,8 @@
 """Scenes: posed images with depth bounds. Scene folders, LLFF, and a synthetic layered scene.
 
 A *scene folder* holds the images and ``cameras.json`` (the transforms.json shape read by
-:func:`cmc.cameras.load_camera_file`, with ``near``/``far``). Everything returned here uses the
-conventions of :mod:`cmc.cameras`; images are float32 [H, W, 3] in [0, 1].
+:func:`cmc.geometry.cameras.load_camera_file`, with ``near``/``far``). Everything returned here uses the
+conventions of :mod:`cmc.geometry.cameras`; images are float32 [H, W, 3] in [0, 1].
 """
 
 from __future__ import annotations
@@ -13,7 +13,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from cmc.cameras import (
+from cmc.data.images import to_uint8
+from cmc.errors import SceneError
+from cmc.geometry.cameras import (
     CameraError,
     CameraFile,
     Cameras,
@@ -23,8 +25,6 @@ from cmc.cameras import (
     pixel_rays,
     save_camera_file,
 )
-from cmc.errors import SceneError
-from cmc.images import to_uint8
 
 CAMERAS_FILE = "cameras.json"
 
@@ -121,7 +121,7 @@ def save_image(path: Path, image: np.ndarray) -> None:
 def load_scene_folder(folder: str | Path) -> Scene:
     """Load a scene folder (images + ``cameras.json`` with near/far)."""
     folder = Path(folder)
-    from cmc.cameras import load_camera_file
+    from cmc.geometry.cameras import load_camera_file
 
     try:
         cf = load_camera_file(folder / CAMERAS_FILE)

@@ -12,32 +12,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, replace
-from typing import Any, Literal
+from dataclasses import replace
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 
-from cmc.geometry import homographies_ref_from_tgt, texel_grid
-
-
-@dataclass
-class SweepConfig:
-    """How :func:`plane_sweep_weights` scores the planes (defaults: the ``fast`` preset's)."""
-
-    # Softmin temperature on the cost, in its units (lower: more confident).
-    temperature: float = 0.3
-    window: int = 5  # side of the texel window the cost is averaged over
-    # The photo-consistency measure: "ad" (mean absolute colour difference) or "ad_census"
-    # (that plus a census term, both saturated).
-    cost: Literal["ad", "ad_census"] = "ad_census"
-    edge_sigma: float = 0.1  # > 0: edge-aware window weights, in colour units; 0: uniform window
-    occlusion_aware: bool = True  # the best-matching other view's cost, not the mean over views
-    extend_border: bool = True  # the margin takes the geometry of the image's border
-    # (P1, P2) of semi-global aggregation of the cost (:func:`semi_global`), in cost units; P2 = 0: off.
-    smoothness: tuple[float, float] = (0.2, 2.0)
-    supersample: int = 2  # sweep on a grid this many times finer than alpha's finest level ...
-    max_texels: int = 2**19  # ... while that grid holds at most this many texels (affordable_supersample)
+from cmc.config import SweepConfig
+from cmc.geometry.planes import homographies_ref_from_tgt, texel_grid
 
 
 def texel_pixels(frame, height: int, width: int) -> torch.Tensor:
@@ -205,10 +187,10 @@ def census_distance(ref: torch.Tensor, warped: torch.Tensor, radius: int = CENSU
     """Census distance between a reference image [3, h, w] and warped images [D, 3, h, w]: the
     share of the (2 * radius + 1)^2 - 1 neighbours whose brightness (mean of the channels)
     relative to the centre texel differs in sign between the two -> [D, h, w] in [0, 1].
-    Borders are replicated. On the CPU a compiled kernel (:mod:`cmc.sweep_kernel`) computes it;
+    Borders are replicated. On the CPU a compiled kernel (:mod:`cmc.method.sweep_kernel`) computes it;
     elsewhere :func:`census_distance_torch`, its twin."""
     if ref.device.type == "cpu" and ref.dtype == torch.float32:
-        from cmc import sweep_kernel
+        from cmc.method import sweep_kernel
 
         return sweep_kernel.census_distance(ref.mean(0), warped.mean(1), radius)
     return census_distance_torch(ref, warped, radius)
@@ -248,7 +230,7 @@ def _window_mean(guide: torch.Tensor, window: int, edge_sigma: float | None, com
     ``exp(-mean_c |guide(x) - guide(y)| / edge_sigma)`` (guide [3, h, w]), normalised over the
     window's texels inside the grid. Callers divide two such sums (costs by coverage), so only
     the relative weights matter. With ``edge_sigma`` on the CPU a compiled kernel sums the windows
-    (:func:`cmc.sweep_kernel.window_sum`, the same result to the bit) unless ``compiled`` is False."""
+    (:func:`cmc.method.sweep_kernel.window_sum`, the same result to the bit) unless ``compiled`` is False."""
     r = window // 2
     h, w = guide.shape[-2:]
     if edge_sigma is None:
@@ -263,7 +245,7 @@ def _window_mean(guide: torch.Tensor, window: int, edge_sigma: float | None, com
     total = sum(weights)
     weights = [wt / total for wt in weights]
     if compiled and guide.device.type == "cpu" and guide.dtype == torch.float32:
-        from cmc import sweep_kernel
+        from cmc.method import sweep_kernel
 
         return sweep_kernel.window_sum(torch.stack(weights, -1), window)
 
@@ -281,9 +263,9 @@ def alpha_from_weights(weights: torch.Tensor, lo: float = 0.01, hi: float = 0.99
 
 
 def semi_global(cost: torch.Tensor, p1: float, p2: float) -> torch.Tensor:
-    """:func:`semi_global_torch`; on the CPU a compiled kernel (:mod:`cmc.sweep_kernel`)."""
+    """:func:`semi_global_torch`; on the CPU a compiled kernel (:mod:`cmc.method.sweep_kernel`)."""
     if cost.device.type == "cpu" and cost.dtype == torch.float32:
-        from cmc import sweep_kernel
+        from cmc.method import sweep_kernel
 
         return sweep_kernel.semi_global(cost, p1, p2)
     return semi_global_torch(cost, p1, p2)

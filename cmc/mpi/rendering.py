@@ -1,6 +1,6 @@
 """Rendering rays and images from per-view MPIs: homography warps and alpha compositing.
 
-Conventions: :mod:`cmc.cameras`. A target ray is identified by its target camera and a
+Conventions: :mod:`cmc.geometry.cameras`. A target ray is identified by its target camera and a
 continuous pixel coordinate ``uv``. Its crossing with plane k of MPI i is found with the
 plane-induced homography (paper Eq. 4.1-4.2), the field is queried there, and the D samples
 are composited front to back (Eq. 3.4 colour, Eq. 3.5 depth).
@@ -20,9 +20,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from cmc.cameras import pixel_rays
-from cmc.fields import MPIField, TextureField, sample_colour_bicubic
-from cmc.geometry import (
+from cmc.geometry.cameras import pixel_rays
+from cmc.geometry.planes import (
     apply_homography,
     blend_weights,
     homographies_ref_from_tgt,
@@ -30,6 +29,7 @@ from cmc.geometry import (
     pixel_centers,
     plane_depths,
 )
+from cmc.mpi.fields import MPIField, TextureField, sample_colour_bicubic
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,7 @@ class MPIFrame:
     Attributes:
         K: [3, 3] reference intrinsics (pixels); world_from_ref: [4, 4] (OpenCV axes).
         depths: [D] plane depths in the reference camera, nearest first (uniform in disparity,
-            or crowded where the scene's surfaces are: :func:`cmc.geometry.content_plane_depths`).
+            or crowded where the scene's surfaces are: :func:`cmc.geometry.planes.content_plane_depths`).
         width, height: reference image size in pixels.
         margin: the planes extend ``margin`` times the image's size about its centre, so that
             target views looking past the reference image's border still see plane content.
@@ -66,7 +66,7 @@ class MPIFrame:
         depths: np.ndarray | None = None,
     ) -> MPIFrame:
         """``depths`` [num_planes], nearest first, from ``near`` to ``far``: the planes (default
-        uniform in disparity, :func:`cmc.geometry.plane_depths`)."""
+        uniform in disparity, :func:`cmc.geometry.planes.plane_depths`)."""
         d = plane_depths(near, far, num_planes) if depths is None else np.asarray(depths)
         if len(d) != num_planes:
             raise ValueError(f"{len(d)} plane depths given for {num_planes} planes")
@@ -286,11 +286,11 @@ def render_texture_image(
 ) -> RayOutput:
     """Whole-image render of fixed textures: every plane warped by its homography, then composited.
 
-    The fast path for baked MPIs (slow twin: :func:`cmc._reference.render_texture_image_reference`). Textures
+    The fast path for baked MPIs (slow twin: :func:`cmc.mpi._reference.render_texture_image_reference`). Textures
     are premultiplied, so sampling outside a plane (zero padding) is simply transparent. With
     ``straight_rgb`` [D, 3, h, w] (the straight colours of the same planes), a sample's colour is
-    those colours sampled bicubically (:func:`cmc.fields.sample_colour_bicubic`) times its
-    bilinear alpha, as :class:`cmc.fields.TextureField` does with ``colour_interpolation="bicubic"``.
+    those colours sampled bicubically (:func:`cmc.mpi.fields.sample_colour_bicubic`) times its
+    bilinear alpha, as :class:`cmc.mpi.fields.TextureField` does with ``colour_interpolation="bicubic"``.
 
     Warp: let ``[R | t]`` = ref_from_tgt, ``d(p) = R K_tgt^-1 p`` the reference-frame direction
     of the ray through target pixel p (homogeneous, target z = 1) and ``e_k = z_k - t_z`` for
@@ -351,7 +351,7 @@ def render_texture_image(
 def blend_selection(
     frames: Sequence[MPIFrame], world_from_cam: torch.Tensor, mpi_index: int | None = None, min_weight: float = 0.0
 ) -> tuple[torch.Tensor, list[int]]:
-    """Blend weights [N] of the MPIs for a target camera (:func:`cmc.geometry.blend_weights`) and
+    """Blend weights [N] of the MPIs for a target camera (:func:`cmc.geometry.planes.blend_weights`) and
     the MPIs to render: those weighing at least ``min_weight`` (at least the heaviest), or only
     ``mpi_index`` (weights then all 1)."""
     device = frames[0].K.device
@@ -377,7 +377,7 @@ def render_image(
 ) -> ImageOutput:
     """Render a whole target image by blending the MPIs (or only MPI ``mpi_index``).
 
-    MPIs whose blend weight (:func:`cmc.geometry.blend_weights`) is below ``min_weight`` are
+    MPIs whose blend weight (:func:`cmc.geometry.planes.blend_weights`) is below ``min_weight`` are
     skipped, which saves time when the target is next to one input camera.
     """
     device = frames[0].K.device

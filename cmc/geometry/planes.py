@@ -1,6 +1,6 @@
 """Plane geometry of multiplane images: plane depths, plane-induced homographies, virtual poses.
 
-Conventions are those of :mod:`cmc.cameras` (OpenCV axes, camera-to-world ``world_from_cam``,
+Conventions are those of :mod:`cmc.geometry.cameras` (OpenCV axes, camera-to-world ``world_from_cam``,
 pixel corners at integers). An MPI belongs to a reference camera ``ref``; its plane k is the
 fronto-parallel plane ``z_ref = depth[k]`` in that camera. Planes are ordered front to back
 (nearest first), which is the compositing order.
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from cmc.cameras import nearest_rotation
+from cmc.geometry.cameras import nearest_rotation
 
 
 def plane_depths(near: float, far: float, num_planes: int) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Camera paths through a forward-facing capture: spiral, orbit and dolly.
 
-Conventions: :mod:`cmc.cameras` (OpenCV axes x right, y down, z forward; camera-to-world poses
+Conventions: :mod:`cmc.geometry.cameras` (OpenCV axes x right, y down, z forward; camera-to-world poses
 ``world_from_cam``). Every path is built around the *mean camera* of the inputs (centre = mean
 of the input centres, rotation = the mean of the input rotations projected onto SO(3)) and stays
 within the capture's baseline, where per-view MPIs are trustworthy:
@@ -25,7 +25,7 @@ from typing import Literal
 
 import numpy as np
 
-from cmc.cameras import Cameras, look_at, nearest_rotation
+from cmc.geometry.cameras import Cameras, look_at, nearest_rotation
 
 PathKind = Literal["spiral", "orbit", "dolly"]
 PATH_KINDS: tuple[str, ...] = ("spiral", "orbit", "dolly")
@@ -118,12 +118,12 @@ def baked_path_cameras(manifest: dict, kind: PathKind, num_frames: int) -> Camer
     """The cameras of a path through a baked scene, from its ``mpi.json`` alone (no torch).
 
     Args:
-        manifest: the parsed ``mpi.json`` of a ``cmc-mpi`` folder (cmc.baking).
+        manifest: the parsed ``mpi.json`` of a ``cmc-mpi`` folder (cmc.serving.baking).
         kind, num_frames: as in :func:`camera_path`.
     Returns:
         F cameras at the input image size: the first MPI's intrinsics and :func:`camera_path`
         through the MPIs' reference cameras and depth range (the videos' cameras,
-        :func:`cmc.video.path_cameras`, at that size).
+        :func:`cmc.serving.video.path_cameras`, at that size).
     """
     refs = np.array([m["world_from_cam"] for m in manifest["mpis"]], dtype=np.float64)
     poses = camera_path(kind, refs, float(manifest["near"]), float(manifest["far"]), num_frames)

@@ -1,7 +1,7 @@
 """Compiled CPU renderer of baked MPIs: the serving renderer.
 
-:func:`render` computes what :func:`cmc.rendering.render_image` computes (that function's and
-:func:`cmc.rendering.render_texture_image`'s docstrings derive the warp and the composite),
+:func:`render` computes what :func:`cmc.mpi.rendering.render_image` computes (that function's and
+:func:`cmc.mpi.rendering.render_texture_image`'s docstrings derive the warp and the composite),
 straight from the 8-bit textures, so a loaded scene needs no float copy.
 
 Memory (:class:`PackedTextures`): every plane of every MPI in one buffer of 32-bit words, one
@@ -16,7 +16,7 @@ Order of work: the target rows go in bands of ``ROWS``, a band in blocks of ``RO
 pixels (the live rays of a block are the set bits of one 64-bit word); per band, MPI by MPI,
 plane by plane over the band's blocks (the plane's texels under the band stay in the CPU's
 caches while its samples are taken), each pixel's transmittance and sums in small per-band
-arrays, and the blend of the MPIs (:func:`cmc.rendering.blend`) at the end of the band, so the
+arrays, and the blend of the MPIs (:func:`cmc.mpi.rendering.blend`) at the end of the band, so the
 output is written once. Pixel-major order (every plane per pixel, sums in registers) was 1.3x
 slower on fern: a row's 144 planes do not fit in the caches. For a block and a plane, one loop
 finds the live rays whose sample can have alpha (without a branch on the texels) and a second
@@ -36,7 +36,7 @@ multiply-adds may fuse (``fastmath={"contract"}``, nothing else). Work it skips,
 * **transparent samples**: a reach bit per texel says whether a bilinear sample whose top-left
   tap is that texel can have any alpha (its four taps: the texel, its right, lower and
   lower-right neighbours). Elsewhere the sample is exactly zero (premultiplied colour). The
-  bake stores alpha under 1 % as 0 (:data:`cmc.baking.ALPHA_FLOOR`), which clears the reach
+  bake stores alpha under 1 % as 0 (:data:`cmc.serving.baking.ALPHA_FLOOR`), which clears the reach
   bits of faint fog: 22 % less time on fern.
 * **opaque rays**: a ray leaves its block's live rays once its transmittance is below
   ``min_transmittance`` (default 1e-4); what is left changes a pixel by less than that.
@@ -66,7 +66,7 @@ import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros  # numba's count of trailing zero bits (tzcnt); numba is pinned
 
 from cmc import kernel_cache
-from cmc.plane_sampling import INTERPOLATIONS, check_interpolation, cubic_weights
+from cmc.mpi.plane_sampling import INTERPOLATIONS, check_interpolation, cubic_weights
 
 TILE_SHIFT = 3
 TILE = 1 << TILE_SHIFT  # texels per occupancy tile side
@@ -206,7 +206,7 @@ def occupied_tiles(occ: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class MPIGeometry:
-    """An MPI's reference camera and planes (:class:`cmc.rendering.MPIFrame` in float64 NumPy)."""
+    """An MPI's reference camera and planes (:class:`cmc.mpi.rendering.MPIFrame` in float64 NumPy)."""
 
     K: np.ndarray  # [3, 3]
     ref_from_world: np.ndarray  # [4, 4]
@@ -230,7 +230,7 @@ class MPIGeometry:
 
 def _plane_params(g: MPIGeometry, h: int, w: int, K_tgt: np.ndarray, world_from_tgt: np.ndarray):
     """Per target pixel p = (u, v, 1): ``Q p = (M d(p), d_z(p))`` with d(p) the reference-frame
-    ray direction and M reference pixels -> plane grid (see :func:`cmc.rendering.render_texture_image`);
+    ray direction and M reference pixels -> plane grid (see :func:`cmc.mpi.rendering.render_texture_image`);
     per plane k the framed texel coordinates ``(ax_k m_x + bx_k, ay_k m_y + by_k)`` of the crossing,
     ``m = M d / d_z``, and ``e_k`` (the crossing's target depth is ``e_k / d_z``); and the number
     of planes with ``e_k <= 0`` (behind the target centre: seen by rays with ``d_z < 0`` only)."""
@@ -436,7 +436,7 @@ def _render_bands(
                     b_b[g] += wj * cb[g]
                     b_d[g] += wj * cd[g] / dz[g]
                     b_a[g] = max(b_a[g], a)
-        # cmc.rendering.blend: sum_i w_i C_i / sum_i w_i a_i, times the largest coverage.
+        # cmc.mpi.rendering.blend: sum_i w_i C_i / sum_i w_i a_i, times the largest coverage.
         for b in range(n_blocks):
             for r in range(n_rows):
                 y = y_lo + r
@@ -483,19 +483,19 @@ def render(
 
     Args:
         packed: the MPIs' textures; mpis: their geometry, in the same order.
-        weights: [N] blend weights (:func:`cmc.rendering.blend_selection`); use: MPIs to render.
+        weights: [N] blend weights (:func:`cmc.mpi.rendering.blend_selection`); use: MPIs to render.
         K_tgt [3, 3], world_from_tgt [4, 4]: the target camera (OpenCV convention, see
-            cmc.cameras); width, height in pixels.
+            cmc.geometry.cameras); width, height in pixels.
         min_transmittance: stop compositing an MPI's ray below this transmittance (0: never).
         threads: threads for this render (default: one per core); the result does not depend on it.
         colour_interpolation: "bilinear": each sample is the bilinear blend of the four texels'
             premultiplied colour and alpha; "bicubic": alpha as before, times the straight colour
-            of the 4 x 4 texels around it under Keys' cubic kernel (:func:`cmc.plane_sampling.cubic_weights`,
+            of the 4 x 4 texels around it under Keys' cubic kernel (:func:`cmc.mpi.plane_sampling.cubic_weights`,
             texels past the plane's edge repeat the edge), clamped to [0, 1]: how
-            :class:`cmc.fields.PyramidPlaneField` samples its base colours with
+            :class:`cmc.mpi.fields.PyramidPlaneField` samples its base colours with
             ``base_interpolation="bicubic"``.
     Returns:
-        as :func:`cmc.rendering.blend`: rgb [height, width, 3] (colour times coverage), depth
+        as :func:`cmc.mpi.rendering.blend`: rgb [height, width, 3] (colour times coverage), depth
         [height, width] (target z, 0 where the coverage is below 1e-3), coverage [height, width],
         float32.
     """

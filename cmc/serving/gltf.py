@@ -7,12 +7,12 @@ What the file holds (``export_glb``):
   scene's mean camera, :func:`nearest_mpi`), one primitive per plane, ordered far to near so
   that viewers which draw a mesh's primitives in order (three.js) blend them back to front.
   Each plane is a quad at its depth in the MPI's reference camera, spanning the plane's extent
-  (the image enlarged ``margin`` times about its centre, as in :mod:`cmc.baking`), with its
+  (the image enlarged ``margin`` times about its centre, as in :mod:`cmc.serving.baking`), with its
   RGBA tile as texture: straight alpha, ``alphaMode: BLEND``, unlit (``KHR_materials_unlit``),
   linear filtering, clamped at the edges. The back plane is opaque, as in the renderer.
 * One perspective camera per input view (the reference camera of each MPI), named
   ``view_<i>`` or by the names given. glTF cameras look down their -Z axis with +Y up: the pose
-  is the OpenCV ``world_from_cam`` with its y and z axes negated (:func:`cmc.cameras.convert_pose`).
+  is the OpenCV ``world_from_cam`` with its y and z axes negated (:func:`cmc.geometry.cameras.convert_pose`).
   ``yfov = 2 atan(h / 2 fy)`` and ``aspectRatio = w / h``: exact for square pixels and a
   centred principal point; glTF cannot express other intrinsics, so those views are approximate.
 * Node ``cmc-scene`` (the root) maps the scene's world to the file's frame, placing the mean
@@ -36,9 +36,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from cmc.camera_paths import mean_pose
-from cmc.cameras import convert_pose, pixel_rays
 from cmc.errors import ConfigError
+from cmc.geometry.camera_paths import mean_pose
+from cmc.geometry.cameras import convert_pose, pixel_rays
 
 GLB_MAGIC, GLB_VERSION, CHUNK_JSON, CHUNK_BIN = 0x46546C67, 2, 0x4E4F534A, 0x004E4942
 FLOAT, UNSIGNED_SHORT = 5126, 5123
@@ -113,7 +113,7 @@ def _column_major(m: np.ndarray) -> list[float]:
 def export_glb(baked: str | Path, mpi: int | None = None, camera_names: list[str] | None = None) -> tuple[bytes, int]:
     """The GLB of baked folder ``baked`` (mpi.json + atlases): MPI ``mpi`` (default
     :func:`nearest_mpi`) and every input camera. Returns (file bytes, the MPI's index)."""
-    from cmc.baking import MANIFEST, BakedFormatError
+    from cmc.serving.baking import MANIFEST, BakedFormatError
 
     folder = Path(baked)
     try:
@@ -139,7 +139,7 @@ def export_glb(baked: str | Path, mpi: int | None = None, camera_names: list[str
         *camera_nodes,
     ]
     doc = {
-        "asset": {"version": "2.0", "generator": "cmc (cmc.gltf)"},
+        "asset": {"version": "2.0", "generator": "cmc (cmc.serving.gltf)"},
         "extensionsUsed": ["KHR_materials_unlit"],
         "scene": 0,
         "scenes": [
@@ -165,7 +165,7 @@ def export_glb(baked: str | Path, mpi: int | None = None, camera_names: list[str
 
 def _read_atlas(folder: Path, entry: dict) -> np.ndarray:
     """[rows * h, cols * w, 4] uint8 RGBA atlas of one MPI entry of a manifest, size checked."""
-    from cmc.baking import BakedFormatError
+    from cmc.serving.baking import BakedFormatError
 
     (h, w), (rows, cols) = entry["tile"], entry["grid"]
     with Image.open(folder / Path(entry["atlas"]).name) as im:
@@ -192,7 +192,7 @@ def _plane_meshes(out: _Bin, atlas: np.ndarray, e: dict, W: int, H: int) -> tupl
         r, c = divmod(k, cols)
         tile = atlas[r * h : (r + 1) * h, c * w : (c + 1) * w].copy()
         if k == len(depths) - 1:
-            tile[..., 3] = 255  # the back plane is opaque (cmc.fields)
+            tile[..., 3] = 255  # the back plane is opaque (cmc.mpi.fields)
         corners = plane_corners(K, pose, float(depths[k]), W, H, float(e["margin"])).astype(np.float32)
         accessors.append(
             {

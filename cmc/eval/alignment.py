@@ -3,7 +3,7 @@ part of pose estimation): :func:`similarity_from_cameras` from their cameras, or
 points: :func:`corresponding_points` pairs the points both see at the same pixels, and
 :func:`register_camera` finds the pose that sees given points at given pixels.
 
-Conventions are :mod:`cmc.cameras`' (OpenCV axes, camera-to-world [..., 4, 4], pixel corner at 0);
+Conventions are :mod:`cmc.geometry.cameras`' (OpenCV axes, camera-to-world [..., 4, 4], pixel corner at 0);
 a similarity ``(scale, R [3, 3], t [3])`` maps ``X' = scale * R @ X + t``.
 """
 
@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from cmc.cameras import nearest_rotation
 from cmc.errors import PoseEstimationError
+from cmc.geometry.cameras import nearest_rotation
 from cmc.poses.colmap import import_pycolmap, world_from_cam
 
 

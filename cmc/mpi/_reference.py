@@ -1,6 +1,6 @@
 """Slow, obviously-correct twins of the fast renderers, for tests only (never imported by the
 library): each intersects every world-space ray with each plane and projects the crossing into
-the reference camera (no homography), one plane at a time. Conventions: :mod:`cmc.rendering`.
+the reference camera (no homography), one plane at a time. Conventions: :mod:`cmc.mpi.rendering`.
 """
 
 from __future__ import annotations
@@ -8,16 +8,16 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from cmc.cameras import pixel_rays
-from cmc.fields import MPIField, sample_colour_bicubic
-from cmc.geometry import pixel_centers
-from cmc.rendering import MPIFrame, RayOutput
+from cmc.geometry.cameras import pixel_rays
+from cmc.geometry.planes import pixel_centers
+from cmc.mpi.fields import MPIField, sample_colour_bicubic
+from cmc.mpi.rendering import MPIFrame, RayOutput
 
 
 def render_rays_reference(
     field: MPIField, frame: MPIFrame, K_tgt: torch.Tensor, world_from_tgt: torch.Tensor, uv: torch.Tensor
 ) -> RayOutput:
-    """Slow, obviously-correct twin of :func:`cmc.rendering.render_rays` for tests: one plane at a time, by
+    """Slow, obviously-correct twin of :func:`cmc.mpi.rendering.render_rays` for tests: one plane at a time, by
     intersecting each world-space ray with the plane and projecting the point into the
     reference camera (no homography)."""
     origin = world_from_tgt[:3, 3]
@@ -63,13 +63,13 @@ def render_texture_image_reference(
     height: int,
     straight_rgb: torch.Tensor | None = None,
 ) -> RayOutput:
-    """Slow, obviously-correct twin of :func:`cmc.rendering.render_texture_image` for tests: one plane at a time,
+    """Slow, obviously-correct twin of :func:`cmc.mpi.rendering.render_texture_image` for tests: one plane at a time,
     by intersecting each pixel's world-space ray with the plane and projecting the point into the
     reference camera (no homography), one ``grid_sample`` per plane (zero padding: transparent
     outside the plane) and front-to-back "over" in a loop. Crossings behind the target camera
     are transparent.
 
-    Shape: as :func:`cmc.rendering.render_texture_image`.
+    Shape: as :func:`cmc.mpi.rendering.render_texture_image`.
     """
     uv = pixel_centers(width, height, rgba_premult.device).to(rgba_premult.dtype)
     d_cam = pixel_rays(K_tgt, uv)

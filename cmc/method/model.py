@@ -10,12 +10,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from cmc.config import ModelConfig
-from cmc.datasets import Scene
+from cmc.data.datasets import Scene
 from cmc.errors import ConfigError
-from cmc.fields import MLPField, MPIField, PyramidPlaneField, plane_group_bounds
-from cmc.geometry import content_plane_depths, occupied_depth_range, texel_grid
-from cmc.planesweep import affordable_supersample, alpha_from_weights, plane_sweep_weights
-from cmc.rendering import ImageOutput, MPIFrame, render_image
+from cmc.geometry.planes import content_plane_depths, occupied_depth_range, texel_grid
+from cmc.method.planesweep import affordable_supersample, alpha_from_weights, plane_sweep_weights
+from cmc.mpi.fields import MLPField, MPIField, PyramidPlaneField, plane_group_bounds
+from cmc.mpi.rendering import ImageOutput, MPIFrame, render_image
 
 
 def push_pull_fill(color: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
@@ -43,7 +43,7 @@ def hidden_layer_colours(rgb: torch.Tensor, front: torch.Tensor, num_planes: int
     where the photo's colour should stay on every plane) lies in or behind the group, and a
     push-pull fill from those texels where a nearer surface hides the group (the background
     continued behind an occluder, not the occluder's colour). Returns [G, 3, h, w], the groups of
-    :func:`cmc.fields.plane_group_bounds`."""
+    :func:`cmc.mpi.fields.plane_group_bounds`."""
     front = F.interpolate(front[None, None].float(), size=rgb.shape[-2:], mode="nearest")[0]
     starts = plane_group_bounds(num_planes, groups)[:-1]
     return torch.stack([push_pull_fill(rgb, (front >= k0).float()) for k0 in starts])
@@ -218,7 +218,7 @@ class CMCModel(nn.Module):
         mpi_index: int | None = None,
         min_weight: float = 0.0,
     ) -> ImageOutput:
-        """Render colour and depth for any camera (see :func:`cmc.rendering.render_image`), every
+        """Render colour and depth for any camera (see :func:`cmc.mpi.rendering.render_image`), every
         MPI in the mean of the photos' colour responses (:meth:`display_fields`)."""
         return render_image(
             self.display_fields(), self.frames, K, world_from_cam, width, height, mpi_index, min_weight=min_weight

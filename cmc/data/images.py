@@ -2,13 +2,13 @@
 
 Convention: sizes are (width, height) in pixels *after* the EXIF orientation is applied (what a
 person sees), and focal lengths are in pixels of that upright full-resolution image. Resized
-copies map the image's outer corners onto each other (the ``cmc.cameras`` pixel convention), so
-intrinsics scale by ``new_size / old_size`` per axis (:meth:`cmc.cameras.Cameras.scaled`).
+copies map the image's outer corners onto each other (the ``cmc.geometry.cameras`` pixel convention), so
+intrinsics scale by ``new_size / old_size`` per axis (:meth:`cmc.geometry.cameras.Cameras.scaled`).
 
 Accepted: JPEG, PNG, WebP and HEIC/HEIF (decoded by ``pillow-heif``, a dependency; an install
 without it refuses HEIC and says so). The format is taken from the file's bytes, never from its
 name. Everything unusable raises
-:class:`cmc.datasets.SceneError` with the photo's name in the message.
+:class:`cmc.data.datasets.SceneError` with the photo's name in the message.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import numpy as np
 from PIL import Image, ImageDraw
 
-from cmc.images import to_uint8
+from cmc.data.images import to_uint8
 
 
 def depth_preview(depth: np.ndarray, near: float, far: float) -> np.ndarray:

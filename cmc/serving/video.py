@@ -1,7 +1,7 @@
 """Camera-path videos of a baked scene: H.264 MP4 files that browsers play and stream.
 
-Frames are rendered with :meth:`cmc.baking.BakedScene.render` along a path of
-:mod:`cmc.camera_paths` (intrinsics of the first MPI, scaled to the output size) and encoded by
+Frames are rendered with :meth:`cmc.serving.baking.BakedScene.render` along a path of
+:mod:`cmc.geometry.camera_paths` (intrinsics of the first MPI, scaled to the output size) and encoded by
 the ffmpeg binary that the ``imageio-ffmpeg`` wheel ships (libx264, yuv420p, ``+faststart`` so
 the index sits before the media data). The file appears atomically: it is written under a
 temporary name in the same folder and renamed into place, so a reader never sees a partial video.
@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from cmc.baking import BakedScene
-from cmc.camera_paths import PATH_KINDS, PathKind, camera_path
+from cmc.data.images import to_uint8
 from cmc.errors import ConfigError
-from cmc.images import to_uint8
+from cmc.geometry.camera_paths import PATH_KINDS, PathKind, camera_path
+from cmc.serving.baking import BakedScene
 
 DEFAULT_FRAMES = 120
 DEFAULT_FPS = 30

@@ -1,0 +1,1 @@
+"""Scenes (folders, LLFF, the synthetic layered scenes) and photo intake."""

@@ -1,0 +1,1 @@
+"""Evaluation: metrics, the LLFF benchmark protocol, diagnostic pictures, aligning reconstructions."""

@@ -1,0 +1,1 @@
+"""The CMC method: plane sweep, model, losses, training and its ETA."""

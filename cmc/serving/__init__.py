@@ -1,0 +1,1 @@
+"""Baked scenes and what serves them: the compiled renderer, glTF export, videos."""
