@@ -17,7 +17,7 @@ HERE = Path(__file__).resolve().parent
 SCENE_REPORTS = {s: f"scenes_{s}_test_sgm2_steps300.json" for s in ("fern", "room", "trex")}
 SYNTHETIC_REPORT = "view_quality_synthetic_sgm2_steps300.json"
 POSE_REPORTS = {
-    "fern": "poses_e2e_fern_model.json",
+    "fern": "poses_e2e_fern_wide.json",
     "room": "poses_e2e_room_wide.json",
     "trex": "poses_e2e_trex_exif_wide.json",
 }
