@@ -119,9 +119,14 @@ def score(scene: Scene, targets: list[tuple[np.ndarray, np.ndarray]]) -> dict[st
         true_plane = np.interp(1 / z, disparity[::-1], np.arange(len(disparity))[::-1].astype(float))
         for label, cost, temperature, supersample, smoothness, occlusion_aware in COSTS:
             sweep = replace(
-                cfg.sweep, temperature=temperature, occlusion_aware=occlusion_aware, cost=cost, smoothness=smoothness
+                cfg.sweep,
+                temperature=temperature,
+                occlusion_aware=occlusion_aware,
+                cost=cost,
+                smoothness=smoothness,
+                supersample=supersample,
             )
-            probs = plane_sweep_weights(frames, images, k, h, w, sweep, supersample)
+            probs = plane_sweep_weights(frames, images, k, h, w, sweep)
             best, plane = probs.max(0)
             sure = (best > 0.5).numpy()
             err = np.abs(plane.numpy()[row, col] - true_plane)

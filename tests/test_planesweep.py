@@ -263,7 +263,7 @@ def test_supersampled_sweep_is_a_distribution_on_the_coarse_grid():
     """With supersample=2 the sweep runs on a 2x finer grid (window 9 for 5) and returns the
     probabilities averaged over each texel of the requested grid: they sum to 1 and find the wall."""
     frames, imgs, true_plane = _textured_wall()
-    w = plane_sweep_weights(frames, imgs, 1, 36, 48, sweep(temperature=0.1, cost="ad_census"), 2)
+    w = plane_sweep_weights(frames, imgs, 1, 36, 48, sweep(temperature=0.1, cost="ad_census", supersample=2))
     assert w.shape == (WALL_PLANES, 36, 48)
     fine = plane_sweep_weights(frames, imgs, 1, 72, 96, sweep(temperature=0.1, window=9, cost="ad_census"))
     torch.testing.assert_close(w, torch.nn.functional.avg_pool2d(fine[None], 2)[0])

@@ -13,7 +13,7 @@ from cmc.config import ModelConfig
 from cmc.data.datasets import Scene
 from cmc.errors import ConfigError
 from cmc.geometry.planes import content_plane_depths, occupied_depth_range, texel_grid
-from cmc.method.planesweep import affordable_supersample, alpha_from_weights, plane_sweep_weights
+from cmc.method.planesweep import alpha_from_weights, plane_sweep_weights
 from cmc.mpi.fields import MLPField, MPIField, PyramidPlaneField, plane_group_bounds
 from cmc.mpi.rendering import ImageOutput, MPIFrame, render_image
 
@@ -65,10 +65,9 @@ def sweep_probabilities(
     """[D, h, w] the plane sweep of MPI ``ref`` (:func:`plane_sweep_weights`) with ``cfg.sweep``,
     on the grid of the pyramid field's finest alpha level; on the finer grid ``cfg.sweep`` asks
     for (where affordable) unless ``supersample`` is False. images: [N, 3, H, W]."""
-    sweep = cfg.sweep
+    sweep = cfg.sweep if supersample else replace(cfg.sweep, supersample=1)
     h, w = (max(2, round(e * cfg.pyramid.scales[0])) for e in frames[ref].extent)
-    factor = affordable_supersample(h, w, sweep.supersample, sweep.max_texels) if supersample else 1
-    return plane_sweep_weights(frames, images, ref, h, w, sweep, factor)
+    return plane_sweep_weights(frames, images, ref, h, w, sweep)
 
 
 def sweep_statistics(frames: list[MPIFrame], images: torch.Tensor, cfg: ModelConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -91,7 +91,6 @@ def plane_sweep_weights(
     height: int,
     width: int,
     cfg: SweepConfig,
-    supersample: int = 1,
 ) -> torch.Tensor:
     """Per-texel probability that each plane of MPI ``ref`` holds the visible surface.
 
@@ -119,23 +118,25 @@ def plane_sweep_weights(
     Args:
         frames: the MPIFrames of all views; images: [N, 3, H, W] in [0, 1].
         height, width: texel grid over the plane extent.
-        supersample: run the sweep on a grid this many times finer in each direction (the
-            window scaled with it) and average the probabilities back over each texel: a texel
-            straddling a depth edge then holds both surfaces in proportion, and thin structures
-            (fern's leaflets, 1-2 pixels wide) are matched at the photo's resolution. (Callers
-            bound ``cfg.supersample`` by :func:`affordable_supersample`.)
+        cfg: the sweep's settings. ``cfg.supersample`` runs it on a grid that many times finer
+            in each direction (as far as :func:`affordable_supersample` allows under
+            ``cfg.max_texels``; the window scaled with it) and averages the probabilities back
+            over each texel: a texel straddling a depth edge then holds both surfaces in
+            proportion, and thin structures (fern's leaflets, 1-2 pixels wide) are matched at
+            the photo's resolution.
     Returns:
         [D, height, width] probabilities summing to 1 over planes.
     """
-    if supersample < 1:
-        raise ValueError(f"plane-sweep supersample must be a whole number >= 1, got {supersample}")
-    if supersample > 1:
-        # The sweep on a grid ``supersample`` times finer, with the same window footprint (rounded
+    if cfg.supersample < 1:
+        raise ValueError(f"plane-sweep supersample must be a whole number >= 1, got {cfg.supersample}")
+    factor = affordable_supersample(height, width, cfg.supersample, cfg.max_texels)
+    if factor > 1:
+        # The sweep on a grid ``factor`` times finer, with the same window footprint (rounded
         # down to an odd size); the probabilities are averaged back over each texel.
-        fine_window = cfg.window * supersample - (cfg.window * supersample + 1) % 2
-        fine_cfg = replace(cfg, window=fine_window)
-        fine = plane_sweep_weights(frames, images, ref, height * supersample, width * supersample, fine_cfg)
-        return F.avg_pool2d(fine[None], supersample)[0]
+        fine_window = cfg.window * factor - (cfg.window * factor + 1) % 2
+        fine_cfg = replace(cfg, window=fine_window, supersample=1)
+        fine = plane_sweep_weights(frames, images, ref, height * factor, width * factor, fine_cfg)
+        return F.avg_pool2d(fine[None], factor)[0]
     fr = frames[ref]
     uv_ref = texel_pixels(fr, height, width)  # [T, 2]
     ref_rgb, _ = sample_image(images[ref], uv_ref)
