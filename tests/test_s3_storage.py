@@ -254,7 +254,8 @@ def test_bad_storage_settings_are_readable_errors(s3: str, tmp_path: Path) -> No
 @pytest.fixture(scope="module")
 def s3_ready(s3: str, tmp_path_factory) -> Iterator[tuple[TestClient, str, Path]]:
     """(client, scene id, data dir) of a scene trained to ``ready`` by the embedded service
-    storing its artifacts in a bucket."""
+    storing its artifacts in a bucket; the files in its local working folders at the moment the
+    job made the scene ready in ``client.work_at_ready``."""
     tmp = tmp_path_factory.mktemp("s3-ready")
     bucket = new_bucket(s3)
     settings = load_settings(
@@ -268,8 +269,19 @@ def s3_ready(s3: str, tmp_path_factory) -> Iterator[tuple[TestClient, str, Path]
         s3_endpoint_url=s3,
     )
     parts, _, novel = synthetic_upload(steps=25)
-    with TestClient(create_app(settings)) as client:
+    app = create_app(settings)
+    store, work_dir, work_at_ready = app.state.services.store, app.state.services.storage.work_dir, []
+    advance = store.advance
+
+    def recording_advance(scene_id, worker, phase, status, **fields):
+        if status == "ready":
+            work_at_ready.extend(p for p in work_dir.rglob("*") if p.is_file())
+        return advance(scene_id, worker, phase, status, **fields)
+
+    store.advance = recording_advance
+    with TestClient(app) as client:
         client.novel = novel  # type: ignore[attr-defined]
+        client.work_at_ready = work_at_ready  # type: ignore[attr-defined]
         r = client.post("/v1/scenes", files=parts)
         assert r.status_code == 202, r.text
         sid = r.json()["id"]
@@ -304,6 +316,7 @@ def test_job_end_to_end_stores_everything_in_the_bucket(s3_ready) -> None:
         time.sleep(0.1)
     assert not (data_dir / "storage").exists(), "artifacts were written to the local folder"
     assert list((data_dir / "work").iterdir()) == [], "working copies were left behind"
+    assert client.work_at_ready == [], "the job said ready before its working copies were removed"
     assert client.get(f"/v1/scenes/{sid}/cameras").status_code == 200
 
 

@@ -283,8 +283,15 @@ def deliver(ctx: JobContext, scene_id: str | None = None) -> list[str]:
 
 
 def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
+    """Train on the scene's folder with checkpoints written in a scratch folder and each one
+    published to storage, bake a preview part way, bake into storage, and make the scene ready
+    once the local copies are removed (a ready scene has nothing left on this worker's disk)."""
     with ctx.storage.reading(SceneLayout(rec.id).scene_dir) as scene_dir, ctx.storage.scratch() as work:
-        _train_and_bake_in(ctx, rec, hb, scene_dir, work)
+        phase = _TrainPhase(ctx, rec, hb, scene_dir)
+        phase.build()
+        train_s = phase.train(work / "checkpoint.pt")
+        phase.bake_final(train_s)
+    phase.make_ready()
 
 
 def _job_config(options: dict[str, Any], settings: Settings) -> TrainConfig:
@@ -323,15 +330,6 @@ def _resume(ctx: JobContext, rec: SceneRecord, trainer: Trainer, make: Callable[
             log.warning("job %s: unusable checkpoint, training from step 0", rec.id, exc_info=True)
     ctx.storage.delete(key)
     return make()
-
-
-def _train_and_bake_in(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path, work: Path) -> None:
-    """Train on the scene folder ``scene_dir`` with checkpoints written in ``work`` and each one
-    published to storage, bake a preview part way, then bake into storage."""
-    phase = _TrainPhase(ctx, rec, hb, scene_dir)
-    phase.build()
-    train_s = phase.train(work / "checkpoint.pt")
-    phase.bake_final(train_s)
 
 
 class _TrainPhase:
@@ -446,7 +444,7 @@ class _TrainPhase:
         return time.perf_counter() - t0
 
     def bake_final(self, train_s: float) -> None:
-        """Publish the final bake, make the scene ready, and drop the checkpoint and the preview."""
+        """Publish the final bake (the scene is not ready yet: :meth:`make_ready`)."""
         from cmc.serving.baking import MANIFEST, bake
 
         ctx, hb, layout = self.ctx, self.hb, self.layout
@@ -461,6 +459,10 @@ class _TrainPhase:
         self.stats["train"].update(
             seconds_this_attempt=round(train_s, 2), bake_seconds=round(time.perf_counter() - t0, 2)
         )
+
+    def make_ready(self) -> None:
+        """Make the scene ready, and drop the checkpoint and the preview the final bake replaces."""
+        ctx, layout = self.ctx, self.layout
         ready = dict(progress=1.0, eta_seconds=0.0, detail=None, stats=self.stats)
         if not ctx.store.advance(self.rec.id, ctx.worker_id, "done", "ready", **ready):
             raise JobStopped("lease_lost")
