@@ -8,9 +8,10 @@ Stages, each timed with the device synchronised at its ends:
   * ``train``: every step of ``Trainer.train_step`` done here in three timed parts (forward =
     ``compute_losses``, backward, Adam step), per loss phase (reconstruction only, then all terms);
   * ``preview bake``: the bake a job publishes after ``--preview-at`` of its steps (the service's
-    ``CMC_PREVIEW_AT``), and the final ``bake`` (``cmc.serving.baking.bake``), each scored on the test
-    views (PSNR; the scoring is not timed); ``load`` (``BakedScene.load``), the first render of
-    a test view and the median of ``--renders`` more.
+    ``CMC_PREVIEW_AT``, at ``worker.pipeline.PREVIEW_TEXEL_SCALE``), and the final ``bake``
+    (``cmc.serving.baking.bake``), each scored on the test views (PSNR; the scoring is not
+    timed); ``load`` (``BakedScene.load``), the first render of a test view and the median of
+    ``--renders`` more.
 Pose estimation is not in it (bench/poses_fern.md times it on the phone photos). The split
 training loop syncs the device three times a step, which the service's loop does not.
 
@@ -45,6 +46,7 @@ from cmc.eval.bench import report_header
 from cmc.eval.metrics import psnr
 from cmc.method.training import Trainer, lr_at
 from cmc.serving.baking import BakedScene, bake
+from worker.pipeline import PREVIEW_TEXEL_SCALE
 
 
 def side_by_side(reports: list[dict[str, Any]]) -> str:
@@ -84,7 +86,12 @@ def main() -> None:
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--set", action="append", default=[], help="a config override, as in `cmc train`")
     ap.add_argument("--renders", type=int, default=10)
-    ap.add_argument("--preview-at", type=float, default=0.3, help="share of the steps after which a preview is baked")
+    ap.add_argument(
+        "--preview-at",
+        type=float,
+        default=0.0,
+        help="share of the steps after which a preview is baked (the service's default: 0)",
+    )
     ap.add_argument("--out")
     args = ap.parse_args()
     if args.update_md:
@@ -139,10 +146,11 @@ def main() -> None:
     test = split.test
     scores: dict[str, float] = {}
 
-    def bake_and_score(name: str, folder: Path) -> None:
-        """Bake into ``folder`` (timed as ``name``), then the baked renders' mean PSNR on the test views."""
+    def bake_and_score(name: str, folder: Path, scale: float = 1.0) -> None:
+        """Bake into ``folder`` at texel ``scale`` (timed as ``name``), then the baked renders' mean
+        PSNR on the test views."""
         t = time.perf_counter()
-        bake(trainer.model, folder)
+        bake(trainer.model, folder, scale=scale)
         sync()
         spent[name] = time.perf_counter() - t
         baked = BakedScene.load(folder, device)
@@ -157,7 +165,7 @@ def main() -> None:
     preview_step = math.ceil(args.preview_at * cfg.steps)
     for step in range(cfg.steps):
         if step == preview_step:
-            bake_and_score("preview bake", tmp / "preview")
+            bake_and_score("preview bake", tmp / "preview", PREVIEW_TEXEL_SCALE)
         phase = "reconstruction only" if step < first_full else "all terms"
         for g in trainer.optimizer.param_groups:
             g["lr"] = lr_at(cfg, step)

@@ -87,11 +87,11 @@ class Settings(BaseSettings):
         "a worker killed without warning loses no more than this",
     )
     preview_at: float = Field(
-        0.3,
+        0.0,
         ge=0,
-        description="share of the training steps after which a job bakes a preview that render, depth, mpi and "
-        "the viewer serve until the final bake replaces it (0: right after the model build, from the plane "
-        "sweep's start; 1 or more: no preview)",
+        description="share of the training steps after which a job bakes a preview (at half the texel "
+        "resolution) that render, depth, mpi and the viewer serve until the final bake replaces it (0: right "
+        "after the model build, from the plane sweep's start; 1 or more: no preview)",
     )
     lease_seconds: float = Field(60.0, gt=0, description="a job whose worker is silent this long is re-queued")
     heartbeat_seconds: float = Field(1.0, gt=0, description="how often a running job reports and checks cancel")

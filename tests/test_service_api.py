@@ -42,6 +42,7 @@ from service.negotiation import negotiate
 from service.quotas import RECORD_HOLD_S
 from service.schemas import RenderCamera
 from service.settings import load_settings
+from worker.pipeline import PREVIEW_TEXEL_SCALE
 
 
 class RecordingQueue:
@@ -926,7 +927,8 @@ def test_unfinished_job_resumes_after_a_restart(tmp_path: Path) -> None:
 
 
 def test_preview_is_served_while_training_then_the_final_bake(tmp_path: Path) -> None:
-    """A job bakes a preview after ``preview_at`` of its steps; render, depth and mpi answer from it
+    """A job bakes a preview after ``preview_at`` of its steps (at half the texel resolution);
+    render, depth and mpi answer from it
     (``Scene-Stage: preview``) while the scene trains, and at once after a restart mid-training (a
     crash between preview and final: the preview survives, the job resumes); once ready they
     answer from the final bake and the preview is gone from storage."""
@@ -961,7 +963,7 @@ def test_preview_is_served_while_training_then_the_final_bake(tmp_path: Path) ->
         assert depth.status_code == 200 and depth.headers["scene-stage"] == "preview"
         mpi = client.get(f"/v1/scenes/{sid}/mpi")
         assert mpi.status_code == 200 and mpi.headers["scene-stage"] == "preview"
-        atlas = json.loads(mpi.content)["mpis"][0]["atlas"]
+        atlas, preview_tile = (json.loads(mpi.content)["mpis"][0][k] for k in ("atlas", "tile"))
         assert client.get(f"/v1/scenes/{sid}/mpi/{atlas}").headers["scene-stage"] == "preview"
         assert client.get(f"/v1/scenes/{sid}/camera-path?frames=3").status_code == 200
         assert client.get(f"/v1/scenes/{sid}/export.glb").status_code == 409  # final products wait
@@ -975,6 +977,8 @@ def test_preview_is_served_while_training_then_the_final_bake(tmp_path: Path) ->
         assert body["status"] == "ready" and not body["preview_ready"], body
         stage, final_psnr = render(client, sid)
         assert stage == "final" and final_psnr > 25.0
+        final_tile = client.get(f"/v1/scenes/{sid}/mpi").json()["mpis"][0]["tile"]
+        assert preview_tile == [round(n * PREVIEW_TEXEL_SCALE) for n in final_tile]  # a quarter of the texels
         rec = client.app.state.services.store.get(sid)
     assert rec.stats["preview"]["step"] == 20  # baked once, not again on resuming
     assert rec.stats["train"]["resumed_from_step"] >= 20

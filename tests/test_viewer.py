@@ -29,6 +29,7 @@ from cmc.eval.metrics import psnr
 from cmc.geometry.camera_paths import mean_pose
 from cmc.method.training import Trainer
 from cmc.serving.baking import BakedScene, bake
+from worker.pipeline import PREVIEW_TEXEL_SCALE
 
 VIEWER = Path(__file__).resolve().parent.parent / "service" / "static" / "viewer.html"
 W, H = 80, 60
@@ -49,7 +50,7 @@ def site(tmp_path_factory):
     trainer = Trainer(scene, cfg)
     trainer.fit()
     bake(trainer.model, root / "baked")
-    shutil.copytree(root / "baked", root / "preview")
+    bake(trainer.model, root / "preview", scale=PREVIEW_TEXEL_SCALE)  # as a job bakes its preview
     for atlas in (root / "preview").glob("*.png"):  # the preview: the same planes, all white
         rgba = np.asarray(Image.open(atlas)).copy()
         rgba[..., :3] = 255
@@ -184,7 +185,7 @@ class _FakeAPI(BaseHTTPRequestHandler):
     """The two routes the viewer uses: GET /v1/scenes/{id} and /v1/scenes/{id}/mpi/{file}.
 
     Scene "s1" trains for its first two status requests, then is ready; "bad" has failed; "p1"
-    trains with a preview (``site/preview``, the baked scene's planes all white) for its first
+    trains with a preview (``site/preview``, the scene baked at half resolution, all white) for its first
     three status requests, then is ready (``site/baked``). Requests without the bearer key get
     401. The class attributes are set per test.
     """
