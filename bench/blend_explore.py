@@ -6,8 +6,9 @@ render of a target view also carries how much of what it shows its reference pho
 target's compositing weights over ``seen_k = T_ref,k * inside`` (``T_ref,k`` the transmittance
 from the reference camera to plane k at the same texel, ``inside`` 1 where the texel lies in the
 reference photo, 0 in the margin), rendered as a colour. A blend then weighs MPI i at a pixel by
-the renderer's per-camera weight times a function of that share. Test views are scored too, only
-to see afterwards whether validation predicted them.
+the renderer's per-camera weight times a function of that share, or (``consensus_<sigma>``) by
+how well its depth there agrees with the other MPIs' (:func:`consensus`). Test views are scored
+too (``--views``), only to see afterwards whether validation predicted them.
 
 Usage::
 
@@ -83,6 +84,19 @@ def blend_with(outs: list[RayOutput], weights: torch.Tensor, extra: list[torch.T
     return (rgb * acc_all.max(0).values[:, None]).clamp(0, 1)
 
 
+def consensus(
+    outs: list[RayOutput], weights: torch.Tensor, sigma: float, near: float, far: float
+) -> list[torch.Tensor]:
+    """Per-ray factors ``e_i``: how well MPI i's depth agrees with the others', the blend-weighted
+    mean over MPIs j (itself included) of ``exp(-((s_i - s_j) / sigma)^2 / 2)`` on normalised
+    disparity ``s = (1/z - 1/far) / (1/near - 1/far)`` (``sigma`` in those units; a plane spacing
+    is 1 / (D - 1)). Where two MPIs agree on a surface and a third does not, the third weighs less."""
+    s = torch.stack([(1 / o.depth.clamp_min(0.5 * near) - 1 / far) / (1 / near - 1 / far) for o in outs])  # [N, R]
+    w = torch.stack([weights[j] * outs[j].acc for j in range(len(outs))])  # [N, R]
+    agree = torch.exp(-0.5 * ((s[:, None] - s[None]) / sigma) ** 2)  # [N, N, R]
+    return list((agree * w[None]).sum(1) / w.sum(0).clamp_min(1e-8))
+
+
 BLENDS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
     "renderer": lambda s: torch.ones_like(s),
     "seen_eps0.3": lambda s: s + 0.3,
@@ -90,6 +104,7 @@ BLENDS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
     "seen_eps0.03": lambda s: s + 0.03,
     "seen_sq_eps0.03": lambda s: s * s + 0.03,
 }
+CONSENSUS_SIGMAS = (0.5, 1.0, 2.0, 4.0)  # in plane spacings: the blends "consensus_<sigma>"
 
 
 def train_or_load(scene: str, data: Path, bakes: Path) -> tuple[Any, BakedScene, float]:
@@ -111,6 +126,7 @@ def main() -> None:
     ap.add_argument("--scenes", default="fern,room,trex")
     ap.add_argument("--bakes", default="/tmp/bakes")
     ap.add_argument("--train-only", action="store_true")
+    ap.add_argument("--views", default="val,test", help="which views to score: val, test or both")
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
     torch.set_num_threads(2)
@@ -123,13 +139,20 @@ def main() -> None:
             continue
         rec: dict[str, Any] = {"train_s": train_s}
         for kind, views in (("val", split.val), ("test", split.test)):
-            scores: dict[str, list[tuple[float, float, float]]] = {b: [] for b in BLENDS}
+            if kind not in args.views.split(","):
+                continue
+            scores: dict[str, list[tuple[float, float, float]]] = {}
+            depths = torch.cat([f.depths for f in baked.frames])
+            near, far, spacing = float(depths.min()), float(depths.max()), 1 / (len(baked.frames[0].depths) - 1)
             for k in range(len(views.names)):
                 weights, outs, seen = per_mpi_renders(baked, views.cameras.K[k], views.cameras.world_from_cam[k])
                 gt = views.images[k]
-                for name, fn in BLENDS.items():
-                    rgb = blend_with(outs, weights, [fn(s) for s in seen]).reshape(baked.height, baked.width, 3).numpy()
-                    scores[name].append((psnr(rgb, gt), ssim(rgb, gt), lpips(rgb, gt)))
+                extras = {name: [fn(s) for s in seen] for name, fn in BLENDS.items()}
+                for sigma in CONSENSUS_SIGMAS:
+                    extras[f"consensus_{sigma}"] = consensus(outs, weights, sigma * spacing, near, far)
+                for name, extra in extras.items():
+                    rgb = blend_with(outs, weights, extra).reshape(baked.height, baked.width, 3).numpy()
+                    scores.setdefault(name, []).append((psnr(rgb, gt), ssim(rgb, gt), lpips(rgb, gt)))
             rec[kind] = {b: [round(float(x), 4) for x in np.mean(v, 0)] for b, v in scores.items()}
             print(scene, kind, json.dumps(rec[kind]), flush=True)
         report["scenes"][scene] = rec
