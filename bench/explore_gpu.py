@@ -77,7 +77,7 @@ def _run(task: tuple[str, list[str], str, dict[str, Any]]) -> dict[str, Any]:
     def score(baked: BakedScene, views: Any) -> list[dict[str, Any]]:
         per_view = []
         for k, view_name in enumerate(views.names):
-            pred = baked.render(views.cameras.K[k], views.cameras.world_from_cam[k]).rgb.cpu().numpy()
+            pred = baked.render(views.cameras.K[k], views.cameras.world_from_cam[k]).rgb
             v = {"name": view_name, "psnr": psnr(pred, views.images[k]), "ssim": ssim(pred, views.images[k])}
             if lpips is not None:
                 v["lpips_vgg"] = lpips(pred, views.images[k])

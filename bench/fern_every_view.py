@@ -87,7 +87,7 @@ def main() -> None:
         for v in sorted(full):
             scene, k = full[v]
             out = baked.render(scene.cameras.K[k], scene.cameras.world_from_cam[k])
-            m = image_metrics(out.rgb.numpy(), scene.images[k])  # LPIPS weights from $CMC_LPIPS_DIR
+            m = image_metrics(out.rgb, scene.images[k])  # LPIPS weights from $CMC_LPIPS_DIR
             kind = "input" if v in train else "protocol test" if v in test else "other"
             place = {"baselines_to_nearest_input": float(dist[v]), "inside_input_triangle": bool(inside[v])}
             views.append({"view": v, "kind": kind, **place, **m})

@@ -66,7 +66,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         baked = BakedScene.load(bake(trainer.model, Path(tmp)), torch.device("cpu"))
         names = [f"val_{i:03d}" for i in split.val_ids]
-        views, _ = score_views(baked, split.val, names, torch.device("cpu"), args.lpips_dir, 1, None)
+        views, _ = score_views(baked, split.val, names, args.lpips_dir, 1, None)
     record = {
         "scene": args.scene,
         "rot_deg": args.rot_deg,

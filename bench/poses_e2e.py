@@ -350,7 +350,7 @@ def refine_test_pose(
 
         def residual(q: np.ndarray, w=w, h=h, sigma=sigma, gt_b=gt_b) -> np.ndarray:
             K_s = np.diag([w / W, h / H, 1.0]) @ K_of(q)
-            rgb = baked.render(K_s, pose_of(q), w, h).rgb.float().cpu()
+            rgb = torch.from_numpy(baked.render(K_s, pose_of(q), w, h).rgb)
             return (_blur(rgb, sigma) - gt_b).reshape(-1).numpy().astype(np.float64)
 
         r = residual(p)
@@ -421,7 +421,7 @@ def register_to_model(
     history = []
     for _ in range(rounds):
         out = baked.render(K, pose)
-        rgb, depth, acc = (t.float().cpu().numpy() for t in (out.rgb, out.depth, out.acc))
+        rgb, depth, acc = out.rgb, out.depth, out.acc
         kp_r, d_r = _sift(rgb)
         m = _mutual_matches(d_r, d_t)
         uv = kp_r[m[:, 0]]
@@ -531,7 +531,7 @@ def score_cameras(
     for label, (Ks, poses) in cams.items():
         views = []
         for k, view in enumerate(test_ids):
-            pred = baked.render(Ks[k], poses[k]).rgb.cpu().numpy()
+            pred = baked.render(Ks[k], poses[k]).rgb
             views.append({"view": view, **image_metrics(pred, test_images[k], lpips_dir)})
             if save_dir is not None:
                 save_image(save_dir / f"{name}_{label}_test_{view:03d}.png", pred)

@@ -62,9 +62,7 @@ def main() -> None:
             bake_s = time.perf_counter() - t
             baked = BakedScene.load(Path(tmp) / f"step{step}")
             test = split.test
-            preds = [
-                baked.render(test.cameras.K[k], test.cameras.world_from_cam[k]).rgb.numpy() for k in range(len(test))
-            ]
+            preds = [baked.render(test.cameras.K[k], test.cameras.world_from_cam[k]).rgb for k in range(len(test))]
             row = {
                 "step": step,
                 "seconds_from_build_start": round(build_s + train_s + bake_s, 1),  # earlier bakes not counted

@@ -154,9 +154,7 @@ def main() -> None:
         sync()
         spent[name] = time.perf_counter() - t
         baked = BakedScene.load(folder, device)
-        preds = [
-            baked.render(test.cameras.K[k], test.cameras.world_from_cam[k]).rgb.cpu().numpy() for k in range(len(test))
-        ]
+        preds = [baked.render(test.cameras.K[k], test.cameras.world_from_cam[k]).rgb for k in range(len(test))]
         scores[name] = round(float(statistics.mean(psnr(p, test.images[k]) for k, p in enumerate(preds))), 3)
 
     tmp = Path(tempfile.mkdtemp())

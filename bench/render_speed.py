@@ -199,13 +199,15 @@ def main() -> None:
     agreement, agreement_torch = [], []
 
     def agree(a, b, view):
-        covered = b.acc > 1e-3
-        rel = ((a.depth - b.depth).abs() / b.depth)[covered]
+        """How far render ``a`` is from ``b`` (each a BakedRender of NumPy arrays or an ImageOutput of tensors)."""
+        a_rgb, a_depth, b_rgb, b_depth, b_acc = (np.asarray(x) for x in (a.rgb, a.depth, b.rgb, b.depth, b.acc))
+        covered = b_acc > 1e-3
+        rel = (np.abs(a_depth - b_depth) / b_depth)[covered]
         return {
             "view": int(view),
-            "psnr_db": psnr(a.rgb.numpy(), b.rgb.numpy()),
+            "psnr_db": psnr(a_rgb, b_rgb),
             "depth_max_rel": float(rel.max()) if len(rel) else 0.0,
-            "covered": float(covered.float().mean()),
+            "covered": float(covered.mean()),
         }
 
     for kind, view, cams, k in poses:

@@ -143,7 +143,7 @@ def encodings(baked_dir: Path, split) -> dict:
     baked = BakedScene.load(baked_dir)
     K, pose = split.test.cameras.K[0], split.test.cameras.world_from_cam[0]
     render_ms, out = timed(lambda: baked.render(K, pose, threads=1), 5)
-    rgb, depth = out.rgb.numpy(), out.depth.numpy()
+    rgb, depth = out.rgb, out.depth
     rgb8 = Image.fromarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8))
 
     def pil(fmt: str, **kw):

@@ -99,9 +99,9 @@ def cmd_render(args: argparse.Namespace) -> None:
         c = cams.cameras[i]
         r = baked.render(c.K[0], c.world_from_cam[0], c.width, c.height)
         stem = Path(name).stem
-        save_image(out / f"{stem}.png", r.rgb.numpy())
-        np.save(out / f"{stem}_depth.npy", r.depth.numpy().astype(np.float32))
-        save_image(out / f"{stem}_depth.png", depth_preview(r.depth.numpy(), baked.near, baked.far))
+        save_image(out / f"{stem}.png", r.rgb)
+        np.save(out / f"{stem}_depth.npy", r.depth)
+        save_image(out / f"{stem}_depth.png", depth_preview(r.depth, baked.near, baked.far))
     print(f"rendered {len(cams.file_paths)} views to {out} (depth: float32 .npy, camera z in scene units)")
 
 

@@ -61,7 +61,7 @@ def run_demo(
     novel = synthetic_cameras(5, width, height)[1:2]
     gt_rgb, gt_depth = render_layers(DEFAULT_LAYERS, novel)
     r = baked.render(novel.K[0], novel.world_from_cam[0])
-    rgb, depth = r.rgb.numpy(), r.depth.numpy()
+    rgb, depth = r.rgb, r.depth
     save_image(out / "novel_view.png", rgb)
     save_image(out / "novel_view_ground_truth.png", gt_rgb[0])
     np.save(out / "novel_depth.npy", depth.astype(np.float32))
@@ -70,7 +70,7 @@ def run_demo(
     )
     frames = []
     for pose in orbit_poses(scene.cameras, 24):
-        f = baked.render(novel.K[0], pose).rgb.numpy()
+        f = baked.render(novel.K[0], pose).rgb
         frames.append(Image.fromarray(to_uint8(f)))
     frames[0].save(out / "orbit.gif", save_all=True, append_images=frames[1:], duration=80, loop=0)
     summary = {

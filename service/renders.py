@@ -118,15 +118,10 @@ class BakedCache:
         """Colour and depth of one camera (OpenCV convention, pixels, see cmc.geometry.cameras) from the
         baked scene in storage folder ``folder``, and with ``coverage`` which pixels show a point
         an input photo saw (:meth:`BakedScene.coverage`)."""
-        import torch
-
         baked = self.get(folder)
-        with torch.inference_mode():
-            out = baked.render(K, world_from_cam, width, height, threads=self.threads)
-            rgb = out.rgb.float().cpu().numpy()
-            depth = out.depth.float().cpu().numpy()
-        seen = baked.coverage(K, world_from_cam, depth) if coverage else None
-        return Rendered(rgb, depth, baked.near, baked.far, seen)
+        out = baked.render(K, world_from_cam, width, height, threads=self.threads)
+        seen = baked.coverage(K, world_from_cam, out.depth) if coverage else None
+        return Rendered(out.rgb, out.depth, baked.near, baked.far, seen)
 
 
 class RenderQueue:

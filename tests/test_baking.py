@@ -40,13 +40,13 @@ def test_baked_render_matches_field_render_at_input_views(trained, tmp_path):
     for i in range(len(scene)):
         K, pose = scene.cameras.K[i], scene.cameras.world_from_cam[i]
         a, b = model.render(K, pose, W, H), baked.render(K, pose)
-        assert psnr(a.rgb.numpy(), b.rgb.numpy()) >= 35
+        assert psnr(a.rgb.numpy(), b.rgb) >= 35
         # The field interpolates alpha logits then applies the sigmoid; the baked texture holds
         # sigmoid values and the renderer interpolates those (in 8 bits). With the sharp plane-sweep
         # start (logits +-4.6 one texel apart) the two differ along occlusion edges by part of a
         # plane step: the bulk must agree, the edge tail within one plane step (here 10 planes
         # from 1.6 to 6.6: one step is 10.5 % of depth at z = 2, the nearest layer, more behind).
-        rel = (a.depth - b.depth).abs() / a.depth
+        rel = (a.depth - torch.from_numpy(b.depth)).abs() / a.depth
         assert rel.median().item() < 0.005 and rel.quantile(0.95).item() < 0.02, rel.quantile(0.95)
         assert rel.quantile(0.99).item() < 0.1, rel.quantile(0.99)
 
@@ -73,9 +73,10 @@ def test_baked_render_matches_slow_twin(trained, tmp_path):
         assert float(slow.acc.max()) > 0.99
         # The CPU kernel stops a ray at transmittance 1e-4 (cmc.serving.texture_kernel): colour and
         # coverage may differ by that much, depth by that share of the far plane's depth.
-        torch.testing.assert_close(fast.rgb.reshape(-1, 3), slow.rgb, rtol=0, atol=1e-4)
-        torch.testing.assert_close(fast.acc.reshape(-1), slow.acc, rtol=0, atol=1e-4)
-        torch.testing.assert_close(fast.depth.reshape(-1), slow.depth, rtol=1e-4, atol=1e-4 * float(baked.far))
+        rgb, acc, depth = (torch.from_numpy(x) for x in (fast.rgb, fast.acc, fast.depth))
+        torch.testing.assert_close(rgb.reshape(-1, 3), slow.rgb, rtol=0, atol=1e-4)
+        torch.testing.assert_close(acc.reshape(-1), slow.acc, rtol=0, atol=1e-4)
+        torch.testing.assert_close(depth.reshape(-1), slow.depth, rtol=1e-4, atol=1e-4 * float(baked.far))
 
 
 def test_manifest_describes_the_atlases(trained, tmp_path):
@@ -120,7 +121,7 @@ def test_merged_planes_are_exact_at_the_reference_view(trained, tmp_path):
     K, pose = scene.cameras.K[0], scene.cameras.world_from_cam[0]
     a = full.render(K, pose, min_weight=0.99)  # the reference MPI alone
     b = merged.render(K, pose, min_weight=0.99)
-    assert psnr(a.rgb.numpy(), b.rgb.numpy()) >= 40
+    assert psnr(a.rgb, b.rgb) >= 40
 
 
 def test_faint_alpha_is_stored_as_zero():

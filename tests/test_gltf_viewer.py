@@ -128,7 +128,7 @@ def screenshot(browser, url: str, query: dict) -> np.ndarray:
 
 
 def reference(baked: BakedScene, K: np.ndarray, pose: np.ndarray, index: int) -> np.ndarray:
-    rgb = baked.render(K, pose, W, H, mpi_index=index).rgb.numpy()
+    rgb = baked.render(K, pose, W, H, mpi_index=index).rgb
     return np.round(np.clip(rgb, 0, 1) * 255) / 255
 
 

@@ -79,7 +79,7 @@ def test_path_video_decodes_to_the_rendered_frames(baked_dir, tmp_path, kind):
     # point, frames 2-4, barely moves, and H.264 interpolates such frames); the dolly passes each
     # pose twice, so the best match must be the frame's pose, not necessarily its index.
     K, poses, w, h = path_cameras(baked, kind, 12)
-    refs = [baked.render(K, pose, w, h).rgb.numpy() for pose in poses]
+    refs = [baked.render(K, pose, w, h).rgb for pose in poses]
     for i in (0, 1):
         scores = [psnr(frames[i] / 255.0 @ LUMA, ref @ LUMA) for ref in refs]
         best = int(np.argmax(scores))

@@ -117,13 +117,13 @@ def test_viewer_matches_the_server_renderer(site, static_url, page, record_prope
     assert shot.shape == (H, W, 3)
     baked = BakedScene.load(site / "baked")
     ref = baked.render(K, pose)
-    score = psnr(shot, _quantised(ref.rgb.numpy()))
+    score = psnr(shot, _quantised(ref.rgb))
     record_property("viewer_psnr_db", score)
     print(f"viewer vs server PSNR: {score:.1f} dB")
     assert score >= 30
     n = page.evaluate("() => { window.cmcViewer.setDepthView(true); return window.cmcViewer.frames + 1; }")
     depth_shot = _frame(page, n)
-    depth_ref = depth_preview(ref.depth.numpy(), baked.near, baked.far)
+    depth_ref = depth_preview(ref.depth, baked.near, baked.far)
     assert psnr(depth_shot, _quantised(depth_ref)) >= 30
 
 
@@ -314,6 +314,6 @@ def test_unseen_view_tints_what_no_photo_saw(site, static_url, page):
     tinted = _frame(page, n)
     marked = np.abs(tinted - plain).sum(-1) > 0.05
     baked = BakedScene.load(site / "baked")
-    unseen = ~baked.coverage(K, pose, baked.render(K, pose).depth.numpy())
+    unseen = ~baked.coverage(K, pose, baked.render(K, pose).depth)
     assert 0.1 < unseen.mean() < 0.9, unseen.mean()  # the camera sees both
     assert (marked == unseen).mean() >= 0.97, (marked.mean(), unseen.mean(), (marked == unseen).mean())

@@ -28,8 +28,7 @@ from cmc.data.datasets import Scene, load_llff, save_image, wide_baseline_split
 from cmc.eval.diagnostics import contact_sheet, depth_error_map, depth_preview, error_map
 from cmc.eval.metrics import image_metrics, psnr
 from cmc.method.training import Progress, Trainer
-from cmc.mpi.rendering import ImageOutput
-from cmc.serving.baking import BakedScene, bake
+from cmc.serving.baking import BakedRender, BakedScene, bake
 
 METRICS = ("psnr", "ssim", "lpips_alex", "lpips_vgg")
 ScoredViews = Literal["test", "val"]
@@ -92,7 +91,7 @@ def bench_scene(
             out_dir = (save_dir or Path(tmp)) / ("baked" if merge == 1 else f"baked_merge{merge}")
             baked = BakedScene.load(bake(trainer.model, out_dir, merge=merge), device)
             per_view, times = score_views(
-                baked, scored, names, device, lpips_dir, render_repeats, save_dir if merge == 1 else None
+                baked, scored, names, lpips_dir, render_repeats, save_dir if merge == 1 else None
             )
             for v, i in zip(per_view, ids, strict=True):
                 v["view"] = i
@@ -126,7 +125,6 @@ def score_views(
     baked: BakedScene,
     test: Scene,
     names: list[str],
-    device: torch.device,
     lpips_dir: str | None,
     repeats: int,
     save_dir: Path | None,
@@ -143,15 +141,13 @@ def score_views(
         K, pose = test.cameras.K[k], test.cameras.world_from_cam[k]
         for _ in range(repeats):
             t = time.perf_counter()
-            out = baked.render(K, pose)
-            if device.type == "cuda":
-                torch.cuda.synchronize()
+            out = baked.render(K, pose)  # NumPy: the device has finished
             times.append(time.perf_counter() - t)
-        pred = out.rgb.cpu().numpy()
+        pred = out.rgb
         rec: dict[str, Any] = {"name": name, **image_metrics(pred, test.images[k], lpips_dir)}
         gt_depth = None if test.depths is None else test.depths[k]
         if gt_depth is not None:
-            rec["depth_rel_error"] = float(np.median(np.abs(out.depth.cpu().numpy() - gt_depth) / gt_depth))
+            rec["depth_rel_error"] = float(np.median(np.abs(out.depth - gt_depth) / gt_depth))
         per_view.append(rec)
         if save_dir:
             save_image(save_dir / f"{name}.png", pred)
@@ -166,7 +162,7 @@ def diagnostic_sheet(
     pose: np.ndarray,
     gt: np.ndarray,
     gt_depth: np.ndarray | None = None,
-    blended: ImageOutput | None = None,
+    blended: BakedRender | None = None,
 ) -> np.ndarray:
     """One picture of a test view: where its error lives and which MPI it comes from.
 
@@ -177,16 +173,16 @@ def diagnostic_sheet(
     """
     near, far = baked.near, baked.far
     blended = blended or baked.render(K, pose)
-    rgb, depth = blended.rgb.cpu().numpy(), blended.depth.cpu().numpy()
+    rgb, depth = blended.rgb, blended.depth
     row1 = [("truth", gt), (f"blend {psnr(rgb, gt):.2f} dB", rgb), ("|error|", error_map(rgb, gt))]
     if gt_depth is not None:
         row1.append(("depth error", depth_error_map(depth, gt_depth)))
     row2, row3 = [], []
     for i in range(len(baked.fields)):
         o = baked.render(K, pose, mpi_index=i)
-        r = o.rgb.cpu().numpy()
+        r = o.rgb
         row2.append((f"MPI {i} {psnr(r, gt):.2f} dB", r))
-        row3.append((f"MPI {i} depth", depth_preview(o.depth.cpu().numpy(), near, far)))
+        row3.append((f"MPI {i} depth", depth_preview(o.depth, near, far)))
     row3.append(("blend depth", depth_preview(depth, near, far)))
     if gt_depth is not None:
         row3.append(("true depth", depth_preview(gt_depth, near, far)))
@@ -280,7 +276,7 @@ def run_synthetic_bench(
         sd = save_dir / name if save_dir else None
         with tempfile.TemporaryDirectory() as tmp:
             baked = BakedScene.load(bake(trainer.model, (sd or Path(tmp)) / "baked"), device)
-            per_view, times = score_views(baked, split.test, split.test.names, device, lpips_dir, render_repeats, sd)
+            per_view, times = score_views(baked, split.test, split.test.names, lpips_dir, render_repeats, sd)
         for v, kind in zip(per_view, split.test_kinds, strict=True):
             v["kind"] = kind
         rec: dict[str, Any] = {"scene": name, "train_seconds": train_s}

@@ -8,10 +8,14 @@ fronto-parallel plane ``z_ref = depth[k]`` in that camera. Planes are ordered fr
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 import numpy as np
 import torch
 
 from cmc.geometry.cameras import nearest_rotation
+
+ArrayT = TypeVar("ArrayT", np.ndarray, torch.Tensor)  # a function that takes either returns the same kind
 
 
 def plane_depths(near: float, far: float, num_planes: int) -> np.ndarray:
@@ -164,7 +168,7 @@ def sample_virtual_pose(world_from_cams: np.ndarray, rng: np.random.Generator, j
     return pose
 
 
-def blend_weights(ref_centers: torch.Tensor, target_center: torch.Tensor, baseline: float) -> torch.Tensor:
+def blend_weights(ref_centers: ArrayT, target_center: ArrayT, baseline: float) -> ArrayT:
     """Weights of the per-view MPIs for one target camera: nearer MPIs weigh more.
 
     The paper's printed formula (w_i proportional to the squared distance mu_i) gives the
@@ -174,7 +178,7 @@ def blend_weights(ref_centers: torch.Tensor, target_center: torch.Tensor, baseli
     ``eps = (0.1 * baseline)^2`` (plus 1e-12) so that weights stay finite and smooth at an
     input camera, also when cameras share a centre.
 
-    Shape: ref_centers [N, 3], target_center [3] -> [N], summing to 1.
+    Shape: ref_centers [N, 3], target_center [3] -> [N], summing to 1 (NumPy or torch, as given).
     """
     mu = ((ref_centers - target_center) ** 2).sum(-1)
     inv = 1.0 / (mu + (0.1 * baseline) ** 2 + 1e-12)

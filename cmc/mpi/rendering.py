@@ -22,6 +22,7 @@ import torch.nn.functional as F
 
 from cmc.geometry.cameras import pixel_rays
 from cmc.geometry.planes import (
+    ArrayT,
     apply_homography,
     blend_weights,
     homographies_ref_from_tgt,
@@ -348,19 +349,24 @@ def render_texture_image(
     return RayOutput(out[:3].T, (depth_sum / warp.dz).reshape(-1)[:P], out[3])
 
 
+def select_mpis(weights: ArrayT, mpi_index: int | None = None, min_weight: float = 0.0) -> tuple[ArrayT, list[int]]:
+    """The blend weights [N] to render with (NumPy or torch, as given) and the MPIs to render:
+    those weighing at least ``min_weight`` (at least the heaviest), or only ``mpi_index``
+    (weights then all 1)."""
+    if mpi_index is not None:
+        return weights * 0 + 1, [mpi_index]
+    use = [i for i in range(len(weights)) if weights[i] >= min_weight] or [int(weights.argmax())]
+    return weights, use
+
+
 def blend_selection(
     frames: Sequence[MPIFrame], world_from_cam: torch.Tensor, mpi_index: int | None = None, min_weight: float = 0.0
 ) -> tuple[torch.Tensor, list[int]]:
-    """Blend weights [N] of the MPIs for a target camera (:func:`cmc.geometry.planes.blend_weights`) and
-    the MPIs to render: those weighing at least ``min_weight`` (at least the heaviest), or only
-    ``mpi_index`` (weights then all 1)."""
-    device = frames[0].K.device
-    if mpi_index is not None:
-        return torch.ones(len(frames), device=device), [mpi_index]
+    """Blend weights [N] of the MPIs for a target camera (:func:`cmc.geometry.planes.blend_weights`)
+    and the MPIs to render (:func:`select_mpis`)."""
     centers = torch.stack([f.world_from_ref[:3, 3] for f in frames])
-    weights = blend_weights(centers, world_from_cam[:3, 3].to(device), mean_baseline(centers))
-    use = [i for i in range(len(frames)) if weights[i] >= min_weight] or [int(weights.argmax())]
-    return weights, use
+    weights = blend_weights(centers, world_from_cam[:3, 3].to(centers.device), mean_baseline(centers))
+    return select_mpis(weights, mpi_index, min_weight)
 
 
 @torch.no_grad()

@@ -46,11 +46,11 @@ from PIL import Image
 
 from cmc.data.images import to_uint8
 from cmc.geometry.cameras import Cameras, pixel_rays
-from cmc.geometry.planes import mean_baseline, texel_grid
+from cmc.geometry.planes import blend_weights, mean_baseline, texel_grid
 from cmc.method.model import CMCModel
 from cmc.mpi.fields import MPIField, TextureField
 from cmc.mpi.plane_sampling import INTERPOLATIONS
-from cmc.mpi.rendering import ImageOutput, MPIFrame, blend_selection, render_image
+from cmc.mpi.rendering import MPIFrame, render_image, select_mpis
 
 if TYPE_CHECKING:
     from cmc.serving.texture_kernel import MPIGeometry, PackedTextures
@@ -186,6 +186,16 @@ def bake(
 
 
 @dataclass
+class BakedRender:
+    """A render of a baked scene, NumPy arrays: rgb [H, W, 3] float32 in [0, 1]; depth [H, W]
+    target-camera z (scene units, 0 where no plane is hit); acc [H, W] coverage in [0, 1]."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    acc: np.ndarray
+
+
+@dataclass
 class BakedScene:
     """A loaded baked folder: the 8-bit textures of its MPIs plus their frames.
 
@@ -303,26 +313,28 @@ class BakedScene:
         min_weight: float = 0.0,
         mpi_index: int | None = None,
         threads: int | None = None,
-    ) -> ImageOutput:
+    ) -> BakedRender:
         """Colour and depth for any camera (OpenCV convention), default size the input size;
         the blend of all MPIs (:func:`cmc.mpi.rendering.render_image`), or MPI ``mpi_index`` alone.
-        ``threads``: CPU threads for this render (default one per core)."""
+        On the CPU NumPy end to end; ``threads``: CPU threads for this render (default one per core)."""
         width, height = width or self.width, height or self.height
         if self.device.type != "cpu":
-            return render_image(
+            out = render_image(
                 self.fields, self.frames, K, world_from_cam, width, height, mpi_index, min_weight=min_weight
             )
+            return BakedRender(*(a.float().cpu().numpy() for a in (out.rgb, out.depth, out.acc)))
         from cmc.serving.texture_kernel import MPIGeometry
         from cmc.serving.texture_kernel import render as render_packed
 
         if self._geometry is None:
             self._geometry = [MPIGeometry.from_frame(f) for f in self.frames]
-        P_t = torch.as_tensor(np.asarray(world_from_cam), dtype=torch.float32)
-        weights, use = blend_selection(self.frames, P_t, mpi_index, min_weight)
+        centers = np.stack([np.linalg.inv(g.ref_from_world)[:3, 3] for g in self._geometry])
+        target = np.asarray(world_from_cam, dtype=np.float64)[:3, 3]
+        weights, use = select_mpis(blend_weights(centers, target, mean_baseline(centers)), mpi_index, min_weight)
         rgb, depth, acc = render_packed(
             self.packed,
             self._geometry,
-            weights.numpy(),
+            weights,
             use,
             K,
             world_from_cam,
@@ -331,4 +343,4 @@ class BakedScene:
             threads=threads,
             colour_interpolation=self.colour_interpolation,
         )
-        return ImageOutput(torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(acc))
+        return BakedRender(rgb, depth, acc)

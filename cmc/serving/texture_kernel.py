@@ -483,7 +483,7 @@ def render(
 
     Args:
         packed: the MPIs' textures; mpis: their geometry, in the same order.
-        weights: [N] blend weights (:func:`cmc.mpi.rendering.blend_selection`); use: MPIs to render.
+        weights: [N] blend weights (:func:`cmc.geometry.planes.blend_weights`); use: MPIs to render.
         K_tgt [3, 3], world_from_tgt [4, 4]: the target camera (OpenCV convention, see
             cmc.geometry.cameras); width, height in pixels.
         min_transmittance: stop compositing an MPI's ray below this transmittance (0: never).

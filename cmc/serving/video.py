@@ -94,7 +94,7 @@ def render_path_video(
     try:
         writer.send(None)  # start ffmpeg
         for i, pose in enumerate(poses):
-            rgb = baked.render(K, pose, w, h).rgb.cpu().numpy()
+            rgb = baked.render(K, pose, w, h).rgb
             writer.send(np.ascontiguousarray(to_uint8(rgb)))
             if on_frame is not None:
                 on_frame(i + 1, len(poses))
