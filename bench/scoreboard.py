@@ -23,6 +23,7 @@ POSE_REPORTS = {
 }
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 PROFILE_REPORT = "profile_job_fern_cpu.json"
+PREVIEW_REPORT = "preview_quality_fern_half.json"
 BUILD_REPORT = "model_build_time_fern.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
 # Issue 38's targets on the test views: PSNR / SSIM / LPIPS-vgg (None: no target).
@@ -191,6 +192,16 @@ def speed() -> list[str]:
             f"median {med['torch']:.1f} s -> {med['compiled']:.1f} s ({med['torch'] / med['compiled']:.1f}x),",
             f"the same model to the bit: {'yes' if b['same_model_to_the_bit'] else 'NO'}.",
             "Compare it with the table above only where both name the same machine and commit.",
+        ]
+    p = load(PREVIEW_REPORT)
+    if p is not None:
+        first = p["previews"][0]
+        out += [
+            "",
+            f"The preview a job serves (baked at step {first['step']}, half the texel resolution): test views at",
+            f"{first['psnr']:.2f} dB, {first['seconds_from_build_start']:.1f} s after the model build starts",
+            "(pose estimation before it: 12.7 s on the phone photos; target: >= 20 dB within 30 s of the upload),",
+            f"{source(p, PREVIEW_REPORT)} (`preview_quality.md`).",
         ]
     return out
 
