@@ -1,0 +1,135 @@
+"""One whole job through ``cmc serve`` as a phone user has it: what the status said and when.
+
+The three full-resolution fern JPEGs (``images/``, no cameras part: pose estimation included) are
+uploaded to a fresh ``cmc serve`` (embedded runner, CPU) with the ``fast`` preset at ``--steps``
+training steps, and the status is polled every ``--poll`` seconds until the scene is ready. Per
+run: seconds from the upload to ``preview_ready`` and to ``ready``, the seconds in each status,
+and how good the ETA was (issue 39: within 25 % of the truth from the first 10 % of the job on):
+at every poll from 10 % of the job's duration on, ``|eta_seconds - seconds left| / seconds left``;
+the median, the 90th percentile and the largest, and the share of polls within 25 %. The polls
+of the last 5 s are left out (a few seconds' error is a large share of nothing).
+
+Usage (repository root, nothing else running):
+    PYTHONPATH=. python bench/job_timeline.py --data ../shared/datasets/llff/fern --steps 80,300 \\
+        --out bench/job_timeline_fern_cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from datetime import date
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from servers import free_port, stop_process_groups, wait_ready, write_report  # noqa: E402
+from stop_time import start  # noqa: E402
+
+from cmc.eval.bench import git_commit  # noqa: E402
+
+
+def upload_parts(scene: Path, steps: int) -> list:
+    """The multipart parts of ``POST /v1/scenes``: the scene's full-resolution photos and options."""
+    parts: list = [("images", (p.name, p.read_bytes(), "image/jpeg")) for p in sorted((scene / "images").glob("*.JPG"))]
+    parts.append(("options", (None, f'{{"steps": {steps}}}')))
+    return parts
+
+
+def eta_errors(samples: list[dict], total_s: float) -> dict:
+    """The ETA's relative errors at the polls from 10 % of the job on (the last 5 s left out)."""
+    errs = [
+        abs(s["eta_seconds"] - (total_s - s["t"])) / (total_s - s["t"])
+        for s in samples
+        if s["t"] >= 0.1 * total_s and total_s - s["t"] > 5 and s["eta_seconds"] is not None
+    ]
+    if not errs:
+        return {"polls": 0}
+    return {
+        "polls": len(errs),
+        "median": round(statistics.median(errs), 3),
+        "p90": round(float(np.quantile(errs, 0.9)), 3),
+        "max": round(max(errs), 3),
+        "share_within_25_percent": round(sum(e <= 0.25 for e in errs) / len(errs), 3),
+    }
+
+
+def run(scene: Path, steps: int, poll_s: float, tmp: Path) -> dict:
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    data, log = tmp / f"data-{steps}", tmp / f"serve-{steps}.log"
+    env = {k: v for k, v in os.environ.items() if k not in ("CMC_API_KEYS", "CMC_API_KEYS_FILE")}
+    env.update(PYTHONPATH=str(ROOT), CMC_DEVICE="cpu", CMC_DATA_DIR=str(data))
+    serve = [sys.executable, "-m", "cmc.cli", "serve", "--log-level", "warning", "--data-dir", str(data)]
+    proc = start([*serve, "--port", str(port)], env, log)
+    try:
+        wait_ready(url, "/healthz", 600, proc, log)
+        with httpx.Client(base_url=url, timeout=60) as client:
+            parts = upload_parts(scene, steps)
+            t0 = time.perf_counter()
+            r = client.post("/v1/scenes", files=parts)
+            r.raise_for_status()
+            sid = r.json()["id"]
+            samples: list[dict] = []
+            while True:
+                body = client.get(f"/v1/scenes/{sid}").json()
+                t = time.perf_counter() - t0
+                samples.append(
+                    {k: body.get(k) for k in ("status", "progress", "eta_seconds", "preview_ready", "detail")}
+                    | {"t": t}
+                )
+                if body["status"] in ("ready", "failed"):
+                    break
+                time.sleep(poll_s)
+        if body["status"] != "ready":
+            raise RuntimeError(f"the job failed: {body}")
+        total = samples[-1]["t"]
+        preview = next((s["t"] for s in samples if s["preview_ready"]), None)
+        by_status: dict[str, float] = {}
+        for a, b in zip(samples, samples[1:], strict=False):
+            by_status[a["status"]] = by_status.get(a["status"], 0.0) + b["t"] - a["t"]
+        return {
+            "steps": steps,
+            "seconds_to_ready": round(total, 1),
+            "seconds_to_preview": None if preview is None else round(preview, 1),
+            "seconds_by_status": {k: round(v, 1) for k, v in by_status.items()},
+            "eta_relative_error": eta_errors(samples, total),
+            "samples": [{k: (round(v, 2) if isinstance(v, float) else v) for k, v in s.items()} for s in samples],
+        }
+    finally:
+        stop_process_groups([proc], grace_s=30)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="an LLFF scene folder with its photos in images/")
+    ap.add_argument("--steps", default="80,300", help="comma-separated training steps, one job each")
+    ap.add_argument("--poll", type=float, default=0.5, help="seconds between status polls")
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args()
+    runs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for steps in (int(s) for s in args.steps.split(",")):
+            row = run(Path(args.data), steps, args.poll, Path(tmp))
+            runs.append(row)
+            print({k: v for k, v in row.items() if k != "samples"}, flush=True)
+    report = {
+        "command": " ".join(["python", *sys.argv]),
+        "machine": f"{os.cpu_count()} CPU cores",
+        "date": date.today().isoformat(),
+        "git_commit": git_commit(),
+        "runs": runs,
+    }
+    write_report(report, args.out)
+
+
+if __name__ == "__main__":
+    main()
