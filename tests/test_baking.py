@@ -81,7 +81,9 @@ def test_baked_render_matches_slow_twin(trained, tmp_path):
 
 def test_manifest_describes_the_atlases(trained, tmp_path):
     _, model = trained
-    out = bake(model, tmp_path / "b")
+    reported = []
+    out = bake(model, tmp_path / "b", on_progress=lambda done, total: reported.append((done, total)))
+    assert reported == [(1, 3), (2, 3), (3, 3)]  # after each MPI's atlas is written
     m = json.loads((out / "mpi.json").read_text())
     assert m["format"] == "cmc-mpi" and m["version"] == 1 and m["convention"] == "opencv"
     # How renders sample colour is the field's: `fast` samples its base colours bicubically,

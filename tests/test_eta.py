@@ -10,7 +10,15 @@ import pytest
 import cmc.method.training
 from cmc.config import PRESETS, preset_config
 from cmc.data.datasets import synthetic_scene
-from cmc.method.eta import FAST_RAYS_PER_VIEW, PRESET_STEPS, TrainingETA, bake_steps, first_full_step, full_cost_ratio
+from cmc.method.eta import (
+    FAST_RAYS_PER_VIEW,
+    PRESET_STEPS,
+    TrainingETA,
+    bake_steps,
+    build_steps,
+    first_full_step,
+    full_cost_ratio,
+)
 from cmc.method.training import Trainer
 
 
@@ -86,8 +94,10 @@ def test_cost_model_follows_the_config() -> None:
         cfg = preset_config("fast", steps=steps)
         # the first step that Trainer.compute_losses runs with the full loss
         assert first_full_step(cfg) == next(s for s in range(steps + 1) if s >= cfg.loss.recon_only_fraction * steps)
-    assert bake_steps(504, 378, 1.2, 3, 2048) == pytest.approx(14.88, abs=0.01)
+    assert bake_steps(504, 378, 1.2, 3, 2048) == pytest.approx(29.77, abs=0.01)
     assert bake_steps(1008, 756, 1.2, 3, 2048) == pytest.approx(4 * bake_steps(504, 378, 1.2, 3, 2048))
+    assert build_steps(504, 378) == 21.0 and build_steps(252, 189) == pytest.approx(21.0 / 4)
+    assert build_steps(1008, 756) == 21.0  # the sweep's grid is capped: no more than fern's
 
 
 def test_preset_steps_match_the_presets() -> None:

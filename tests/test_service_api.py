@@ -176,18 +176,22 @@ def test_status_of_a_ready_scene(ready) -> None:
 
 def test_eta_seconds_covers_the_rest_of_the_job(ready) -> None:
     """eta_seconds is the whole job's: while estimating poses it holds the training to come, in
-    every later stage it is set, and the bake has an estimate of its own."""
+    every later stage it is set, and the bake has an estimate of its own, from the preview's."""
     from cmc.method.eta import reference_training_s
 
-    client, _, _, _ = ready
+    client, sid, _, _ = ready
     writes = client.job_writes
     assert [w[0] for w in writes][:1] == ["estimating_poses"] and writes[-1] == ("ready", 1.0, 0.0)
     assert all(eta is not None and eta >= 0 for _, _, eta in writes)
     poses = [eta for status, _, eta in writes if status == "estimating_poses"]
     assert min(poses) >= reference_training_s(25)  # 25 steps and the bake are still to come
     assert any(status == "training" and 0 < p < 1 for status, p, _ in writes)
-    bake = [eta for status, _, eta in writes if status == "baking"]
-    assert bake and all(eta > 0 for eta in bake)
+    bake = [(p, eta) for status, p, eta in writes if status == "baking"]
+    preview_bake_s = client.app.state.services.store.get(sid).stats["preview"]["bake_seconds"]
+    # the final bake's first estimate: the preview's measured bake at four times its texels
+    assert bake[0][0] == 0.0 and bake[0][1] == pytest.approx(preview_bake_s / PREVIEW_TEXEL_SCALE**2, abs=0.15)
+    progress = [p for p, _ in bake]  # as the heartbeat wrote it (bake() reports each MPI: test_baking)
+    assert progress == sorted(progress) and all(eta > 0 for p, eta in bake if p < 1)
 
 
 def test_render_and_depth_match_the_ground_truth(ready) -> None:

@@ -208,7 +208,8 @@ POSE_STAGE_PROGRESS = {
 
 
 def _training_prior_s(options: dict[str, Any]) -> float:
-    """Seconds of training and baking, at the reference's speed (cmc.method.eta), for the scene's options."""
+    """Seconds of the model build, training and baking, at the reference's speed (cmc.method.eta),
+    for the scene's options."""
     from cmc.method.eta import PRESET_STEPS, reference_training_s
 
     return reference_training_s(options.get("steps") or PRESET_STEPS[options["preset"]])
@@ -339,17 +340,20 @@ class _TrainPhase:
     """One attempt at the train phase of a job: the model built (or resumed from the job's
     checkpoint), trained with progress, ETA and checkpoints, a preview baked part way, the final
     bake published and the scene made ready. ETAs count in training steps of this worker
-    (``step_s`` seconds each, measured once it trains), a bake as ``bake_cost`` steps."""
+    (``step_s`` seconds each, measured once it trains), the model build as ``build_cost`` steps and
+    a bake as ``bake_cost`` steps until the preview's bake has measured this worker's bake speed."""
 
     def __init__(self, ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path):
         from cmc.data.datasets import load_scene_folder
-        from cmc.method.eta import REFERENCE_STEP_S, bake_steps
+        from cmc.method.eta import REFERENCE_STEP_S, bake_steps, build_steps
 
         self.ctx, self.rec, self.hb, self.layout = ctx, rec, hb, SceneLayout(rec.id)
         self.scene = load_scene_folder(scene_dir)
         self.cfg = cfg = _job_config(rec.options, ctx.settings)
         cams = self.scene.cameras
         self.bake_cost = bake_steps(cams.width, cams.height, cfg.model.margin, len(self.scene), cfg.rays_per_view)
+        self.build_cost = build_steps(cams.width, cams.height)
+        self.bake_s: float | None = None  # the final bake's seconds, from this attempt's preview bake
         at = ctx.settings.preview_at
         self.preview_step = math.ceil(at * cfg.steps) if at < 1 and "preview" not in rec.stats else None
         self.step_s = REFERENCE_STEP_S  # until this worker has measured its own steps
@@ -361,8 +365,15 @@ class _TrainPhase:
     def _preview_pending(self) -> bool:
         return self.preview_step is not None and "preview" not in self.stats
 
-    def _eta(self, steps_left: float) -> float:
-        return round((steps_left + self.bake_cost + self._preview_pending() * self.preview_cost) * self.step_s, 1)
+    def _final_bake_s(self) -> float:
+        return self.bake_s if self.bake_s is not None else self.bake_cost * self.step_s
+
+    def _bakes_s(self) -> float:
+        """Seconds of the bakes still to come (the final, and the preview while pending)."""
+        return self._final_bake_s() + self._preview_pending() * self.preview_cost * self.step_s
+
+    def _eta(self, steps_left: float, built: bool = True) -> float:
+        return round((steps_left + (not built) * self.build_cost) * self.step_s + self._bakes_s(), 1)
 
     def build(self) -> None:
         """The model (plane sweeps: seconds to minutes), at the stored checkpoint when usable."""
@@ -372,7 +383,7 @@ class _TrainPhase:
         hb.set(
             status="training",
             progress=0.0,
-            eta_seconds=self._eta(cfg.steps),
+            eta_seconds=self._eta(cfg.steps, built=False),
             detail=f"building the model ({cfg.preset} preset: plane sweep)",
         )
         hb.flush()
@@ -404,6 +415,7 @@ class _TrainPhase:
         with self.ctx.storage.writing(self.layout.preview(), manifest=MANIFEST) as folder:
             bake(self.trainer.model, folder, scale=PREVIEW_TEXEL_SCALE)
         self.preview_s = time.perf_counter() - t
+        self.bake_s = self.preview_s / PREVIEW_TEXEL_SCALE**2
         self.stats["preview"] = {
             "step": step,
             "bake_seconds": round(self.preview_s, 2),
@@ -416,8 +428,7 @@ class _TrainPhase:
 
     def _on_progress(self, p: Progress) -> None:
         self.step_s = (p.elapsed_s - self.preview_s) / (p.step - self.resumed_from)
-        bakes = self.bake_cost + self._preview_pending() * self.preview_cost
-        self.hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s + bakes * self.step_s, 1))
+        self.hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s + self._bakes_s(), 1))
         if self._preview_pending() and p.step >= self.preview_step:  # type: ignore[operator]
             self._bake_preview()
 
@@ -452,14 +463,19 @@ class _TrainPhase:
         from cmc.serving.baking import MANIFEST, bake
 
         ctx, hb, layout = self.ctx, self.hb, self.layout
-        hb.set(
-            status="baking", progress=0.0, eta_seconds=round(self.bake_cost * self.step_s, 1), detail="baking the MPIs"
-        )
+        expected = self._final_bake_s()
+        hb.set(status="baking", progress=0.0, eta_seconds=round(expected, 1), detail="baking the MPIs")
         hb.flush()
         hb.check()
         t0 = time.perf_counter()
+
+        def on_progress(done: int, total: int) -> None:
+            """After each MPI: the share done, and the time left at the pace so far."""
+            spent = time.perf_counter() - t0
+            hb.set(progress=done / total, eta_seconds=round(spent * (total - done) / done, 1))
+
         with ctx.storage.writing(layout.baked(), manifest=MANIFEST) as baked:
-            bake(self.trainer.model, baked)
+            bake(self.trainer.model, baked, on_progress=on_progress)
         self.stats["train"].update(
             seconds_this_attempt=round(train_s, 2), bake_seconds=round(time.perf_counter() - t0, 2)
         )

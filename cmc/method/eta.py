@@ -13,11 +13,12 @@ Stages that have not run yet are estimated from a reference run until they measu
 speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2-core CPU.
 
 * :data:`REFERENCE_POSES_S`: structure from motion, 12.7 s (median of 3, bench/poses_fern.md).
-* :data:`REFERENCE_STEP_S`: a training step, plane sweep included, 0.60 s (400 steps of 4096
-  rays per view in 240 s, bench/view_quality_fern_sampler.json). A GPU trains much faster: until
-  training has run a step, a job's estimate is pessimistic there.
-* Baking, in training steps (:func:`bake_steps`): modelled, not measured; the bake evaluates
-  every texel of every plane once, a step its rays' samples forward and backward.
+* :data:`REFERENCE_STEP_S`: a training step, 0.72 s in ``cmc serve`` (bench/job_timeline_fern_cpu.json:
+  the train phase of a 300-step job took 159 s more than that of an 80-step one). A GPU trains
+  much faster: until training has run a step, a job's estimate is pessimistic there.
+* The model build (the plane sweeps), in training steps (:func:`build_steps`), and baking
+  (:func:`bake_steps`): modelled from the same jobs. A job that bakes a preview measures its own
+  bake speed there (``worker.pipeline``).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ if TYPE_CHECKING:
     from cmc.config import TrainConfig
 
 REFERENCE_POSES_S = 12.7
-REFERENCE_STEP_S = 0.60
+REFERENCE_STEP_S = 0.72
 # TrainConfig.steps of each preset and the fast preset's rays_per_view (cmc.config.preset_config
 # needs torch to import; the pose-estimation worker does not load it). tests/test_eta.py checks
 # that they agree.
@@ -52,18 +53,27 @@ def full_cost_ratio(cfg: TrainConfig, num_views: int) -> float:
 
 
 def bake_steps(width: int, height: int, margin: float, num_views: int, rays_per_view: int) -> float:
-    """Baking's cost in reconstruction-only training steps (a model, not a measurement).
+    """Baking's cost in reconstruction-only training steps (a model fitted to one measurement).
 
     Per plane of every MPI the bake evaluates the field once at each of ``margin^2 * W * H``
-    texels; a step evaluates it at ``num_views * rays_per_view`` samples, forward and backward
-    (about three forward passes). Fern at 504x378, fast preset (4096 rays): about 7 steps.
+    texels and writes it; a step evaluates it at ``num_views * rays_per_view`` samples, forward and
+    backward. Fern at 504x378, fast preset (4096 rays): about 15 steps (9-11 s in ``cmc serve``,
+    publishing included, bench/job_timeline_fern_cpu.json).
     """
-    return margin**2 * width * height / (3.0 * num_views * rays_per_view)
+    return margin**2 * width * height / (1.5 * num_views * rays_per_view)
+
+
+def build_steps(width: int, height: int) -> float:
+    """The model build's cost (the plane sweeps) in training steps (a model fitted to one
+    measurement): fern at 504x378, 15 s, about 21 steps; in proportion to the photos' pixels up to
+    that size, no more above it (the sweep's grid is capped: ``SweepConfig.max_texels``)."""
+    return 21.0 * min(1.0, width * height / (504 * 378))
 
 
 def reference_training_s(steps: int) -> float:
-    """Seconds to train ``steps`` steps and bake, at the reference's speed (fern, ``fast``)."""
-    return (steps + bake_steps(504, 378, 1.2, 3, FAST_RAYS_PER_VIEW)) * REFERENCE_STEP_S
+    """Seconds to build the model, train ``steps`` steps and bake, at the reference's speed
+    (fern, ``fast``)."""
+    return (build_steps(504, 378) + steps + bake_steps(504, 378, 1.2, 3, FAST_RAYS_PER_VIEW)) * REFERENCE_STEP_S
 
 
 class TrainingETA:

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -127,7 +128,12 @@ def quantize_planes(rgba: torch.Tensor, alpha_floor: int = ALPHA_FLOOR) -> np.nd
 
 
 def bake(
-    model: CMCModel, out_dir: str | Path, scale: float = 1.0, merge: int = 1, alpha_floor: int = ALPHA_FLOOR
+    model: CMCModel,
+    out_dir: str | Path,
+    scale: float = 1.0,
+    merge: int = 1,
+    alpha_floor: int = ALPHA_FLOOR,
+    on_progress: Callable[[int, int], None] | None = None,
 ) -> Path:
     """Write ``model`` in the ``cmc-mpi`` format, each MPI as :meth:`CMCModel.display_fields`
     shows it (in the mean of the photos' colour responses where those were learnt).
@@ -135,6 +141,7 @@ def bake(
     ``scale`` multiplies the texel resolution; ``merge`` > 1 composites that many adjacent
     planes into one (:func:`merge_planes`) for faster rendering; alpha at or below
     ``alpha_floor`` (8-bit counts) is stored as 0 (:func:`quantize_planes`; 0 keeps every alpha).
+    ``on_progress(done, total)`` is called after each MPI is written.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -162,6 +169,8 @@ def bake(
                 "atlas": name,
             }
         )
+        if on_progress is not None:
+            on_progress(i + 1, len(model.frames))
     centers = torch.stack([f.world_from_ref[:3, 3] for f in model.frames]).cpu()
     manifest = {
         "format": FORMAT,
