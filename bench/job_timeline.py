@@ -12,11 +12,14 @@ of the last 5 s are left out (a few seconds' error is a large share of nothing).
 Usage (repository root, nothing else running):
     PYTHONPATH=. python bench/job_timeline.py --data ../shared/datasets/llff/fern --steps 80,300 \\
         --out bench/job_timeline_fern_cpu.json
+writes the report and a markdown table beside it (``.md``); ``--table REPORT.json`` prints the
+table of an earlier report.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import sys
@@ -114,7 +117,11 @@ def main() -> None:
     ap.add_argument("--steps", default="80,300", help="comma-separated training steps, one job each")
     ap.add_argument("--poll", type=float, default=0.5, help="seconds between status polls")
     ap.add_argument("--out", required=True)
+    ap.add_argument("--table", help="only print the markdown table of this report")
     args = ap.parse_args()
+    if args.table:
+        print(summary_table(json.loads(Path(args.table).read_text())))
+        return
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         for steps in (int(s) for s in args.steps.split(",")):
@@ -129,6 +136,25 @@ def main() -> None:
         "runs": runs,
     }
     write_report(report, args.out)
+    Path(args.out).with_suffix(".md").write_text(summary_table(report) + "\n")
+
+
+def summary_table(report: dict) -> str:
+    """A markdown table of a report's runs."""
+    lines = [
+        "| steps | preview after s | ready after s | poses / training / baking s "
+        "| ETA error: median / p90 / max | within 25 % |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in report["runs"]:
+        st, e = r["seconds_by_status"], r["eta_relative_error"]
+        stages = " / ".join(f"{st.get(k, 0.0):.1f}" for k in ("estimating_poses", "training", "baking"))
+        lines.append(
+            f"| {r['steps']} | {r['seconds_to_preview']} | {r['seconds_to_ready']} | {stages} | "
+            f"{e['median']:.2f} / {e['p90']:.2f} / {e['max']:.2f} | "
+            f"{100 * e['share_within_25_percent']:.0f} % of {e['polls']} polls |"
+        )
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
