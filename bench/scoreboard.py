@@ -24,6 +24,7 @@ POSE_REPORTS = {
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 PROFILE_REPORT = "profile_job_fern_cpu.json"
 PREVIEW_REPORT = "preview_quality_fern_half.json"
+TIMELINE_REPORT = "job_timeline_fern_cpu.json"
 BUILD_REPORT = "model_build_time_fern.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
 # Issue 38's targets on the test views: PSNR / SSIM / LPIPS-vgg (None: no target).
@@ -203,6 +204,21 @@ def speed() -> list[str]:
             "(pose estimation before it: 12.7 s on the phone photos; target: >= 20 dB within 30 s of the upload),",
             f"{source(p, PREVIEW_REPORT)} (`preview_quality.md`).",
         ]
+    t = load(TIMELINE_REPORT)
+    if t is not None:
+        out += [
+            "",
+            "The whole job through `cmc serve`, fern's three phone JPEGs uploaded and polled to `ready`",
+            f"(`python bench/job_timeline.py`, {source(t, TIMELINE_REPORT)}, `job_timeline.md`; targets: preview",
+            "<= 30 s, ready <= 120 s, ETA within 25 % from 10 % of the job on):",
+            "",
+            "| steps | preview after s | ready after s | ETA within 25 % of the polls |",
+            "|---|---|---|---|",
+        ]
+        for r in t["runs"]:
+            e = r["eta_relative_error"]
+            share = f"{100 * e['share_within_25_percent']:.0f} % (median error {100 * e['median']:.0f} %)"
+            out.append(f"| {r['steps']} | {r['seconds_to_preview']} | {r['seconds_to_ready']} | {share} |")
     return out
 
 
