@@ -104,6 +104,16 @@ def test_same_seed_same_result_other_seed_differs(scene):
     assert not torch.allclose(pa, pc)
 
 
+def test_model_build_reports_its_progress(scene):
+    """The build's share done: after the sweeps placing the planes, then after each MPI's."""
+    from cmc.method.model import PLACING_SHARE
+
+    shares = []
+    Trainer(scene, tiny(steps=4), on_build_progress=shares.append)
+    rest = 1 - PLACING_SHARE
+    assert shares == pytest.approx([PLACING_SHARE, PLACING_SHARE + rest / 3, PLACING_SHARE + 2 * rest / 3, 1.0])
+
+
 def test_progress_reports_every_step_with_eta(scene):
     seen = []
     Trainer(scene, tiny(steps=4)).fit(on_progress=seen.append)

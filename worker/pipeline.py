@@ -288,7 +288,7 @@ def deliver(ctx: JobContext, scene_id: str | None = None) -> list[str]:
 
 def _train_and_bake(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     """Train on the scene's folder with checkpoints written in a scratch folder and each one
-    published to storage, bake a preview part way, bake into storage, and make the scene ready
+    published to storage, bake a preview (``Settings.preview_at``), bake into storage, make the scene ready
     once the local copies are removed (a ready scene has nothing left on this worker's disk)."""
     with ctx.storage.reading(SceneLayout(rec.id).scene_dir) as scene_dir, ctx.storage.scratch() as work:
         phase = _TrainPhase(ctx, rec, hb, scene_dir)
@@ -380,14 +380,17 @@ class _TrainPhase:
         from cmc.method.training import Trainer
 
         cfg, hb = self.cfg, self.hb
-        hb.set(
-            status="training",
-            progress=0.0,
-            eta_seconds=self._eta(cfg.steps, built=False),
-            detail=f"building the model ({cfg.preset} preset: plane sweep)",
-        )
+        building = f"building the model ({cfg.preset} preset: plane sweep"
+        hb.set(status="training", progress=0.0, eta_seconds=self._eta(cfg.steps, built=False), detail=building + ")")
         hb.flush()
-        make = lambda: Trainer(self.scene, cfg, self.device)  # noqa: E731
+        t0 = time.perf_counter()
+
+        def on_build_progress(share: float) -> None:
+            """The build's share done in the detail, and the rest of it at its pace so far in the ETA."""
+            rest = (time.perf_counter() - t0) * (1 - share) / share
+            hb.set(eta_seconds=round(rest + self._eta(cfg.steps), 1), detail=f"{building}, {100 * share:.0f} % done)")
+
+        make = lambda: Trainer(self.scene, cfg, self.device, on_build_progress)  # noqa: E731
         self.trainer = _resume(self.ctx, self.rec, make(), make)
         self.resumed_from = resumed = self.trainer.step
         self.stats["train"] = {"steps": cfg.steps, "device": str(self.device), "resumed_from_step": resumed}

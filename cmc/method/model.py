@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -136,6 +137,9 @@ class MeanResponseField(MPIField):
 # A fitted depth range replaces the scene's bounds when its disparity span is below this share of
 # theirs (one more plane sweep; the planes would otherwise move by under a tenth of a spacing).
 FIT_WORTH = 0.9
+# The share of a model build that CMCModel's on_progress gives the sweeps placing the planes (fern:
+# 3.1 of 14.4 s, bench/PROFILE.md); each MPI's alpha sweep takes an equal part of the rest.
+PLACING_SHARE = 0.25
 
 
 class CMCModel(nn.Module):
@@ -148,9 +152,19 @@ class CMCModel(nn.Module):
             renders and bakes show every MPI in their mean (:meth:`display_fields`).
         near, far: the plane range (scene units) shared by all MPIs: the scene's bounds, or with
             ``fit_depth_range`` the part of them where the plane sweep finds the scene.
+
+    ``on_progress(share)`` is called as the build goes (plane sweeps: seconds to minutes) with the
+    share of it done, 0 to 1: a quarter for the sweeps that place the planes, the rest MPI by MPI
+    (about the shares of their time on fern, bench/PROFILE.md).
     """
 
-    def __init__(self, scene: Scene, cfg: ModelConfig, device: torch.device | str = "cpu"):
+    def __init__(
+        self,
+        scene: Scene,
+        cfg: ModelConfig,
+        device: torch.device | str = "cpu",
+        on_progress: Callable[[float], None] | None = None,
+    ):
         super().__init__()
         # A preset's base colour groups may outnumber the planes of a model set smaller by hand
         # (``model.num_planes=4`` under ``fast``'s 8 groups): then one base per plane.
@@ -191,6 +205,8 @@ class CMCModel(nn.Module):
                     self.frames = frames()
                     density, _ = sweep_statistics(self.frames, images, cfg)
             self.frames = frames(content_plane_depths(self.near, self.far, density, cfg.plane_density_floor))
+        report = on_progress or (lambda share: None)
+        report(PLACING_SHARE)
         fields: list[MPIField] = []
         for i, fr in enumerate(self.frames):
             if cfg.field_type == "mlp":
@@ -205,6 +221,7 @@ class CMCModel(nn.Module):
                 fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha))
             else:
                 raise ValueError(f"unknown field type {cfg.field_type!r}")
+            report(PLACING_SHARE + (1 - PLACING_SHARE) * (i + 1) / len(self.frames))
         self.fields = nn.ModuleList(fields).to(device)
         self.exposure = ExposureResponse(len(scene)).to(device) if cfg.exposure_compensation else None
 

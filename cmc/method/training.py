@@ -133,12 +133,19 @@ class Trainer:
         device: torch device ("cpu", "cuda").
     """
 
-    def __init__(self, scene: Scene, cfg: TrainConfig, device: str | torch.device = "cpu"):
+    def __init__(
+        self,
+        scene: Scene,
+        cfg: TrainConfig,
+        device: str | torch.device = "cpu",
+        on_build_progress: Callable[[float], None] | None = None,
+    ):
+        """``on_build_progress``: the model build's share done as it goes (:class:`CMCModel`)."""
         validate_scene(scene, min_views=2)
         self.scene, self.cfg = scene, cfg
         self.device = torch.device(device)
         torch.manual_seed(cfg.seed)
-        self.model = CMCModel(scene, cfg.model, self.device)
+        self.model = CMCModel(scene, cfg.model, self.device, on_build_progress)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, fused=True)
         self.images = torch.as_tensor(scene.images, device=self.device).reshape(len(scene), -1, 3)
         self.K = torch.as_tensor(scene.cameras.K, dtype=torch.float32, device=self.device)
