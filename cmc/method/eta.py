@@ -24,6 +24,7 @@ speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2
 from __future__ import annotations
 
 import math
+from collections import deque
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -76,8 +77,15 @@ def reference_training_s(steps: int) -> float:
     return (build_steps(504, 378) + steps + bake_steps(504, 378, 1.2, 3, FAST_RAYS_PER_VIEW)) * REFERENCE_STEP_S
 
 
+# A phase's step time is the mean of its last this many steps: steps get slower as training goes
+# (fern's full-loss steps 0.74 s at first, 0.81 s at the end, bench/job_timeline.md), which the
+# mean of the whole phase would lag behind.
+RECENT_STEPS = 25
+
+
 class TrainingETA:
-    """Seconds left in a training run, with each loss phase's step time measured apart.
+    """Seconds left in a training run, with each loss phase's step time measured apart (the mean
+    of its last :data:`RECENT_STEPS` steps).
 
     Args:
         total: steps of the run; first_full: index of the first full-loss step
@@ -87,8 +95,8 @@ class TrainingETA:
 
     def __init__(self, total: int, first_full: int, full_cost_ratio: float):
         self.total, self.first_full, self.ratio = total, min(max(first_full, 0), total), full_cost_ratio
-        self._seconds = [0.0, 0.0]  # per phase: reconstruction-only, full
-        self._count = [0, 0]
+        # per phase (reconstruction-only, full): the times of its last RECENT_STEPS steps
+        self._recent: list[deque[float]] = [deque(maxlen=RECENT_STEPS), deque(maxlen=RECENT_STEPS)]
 
     @classmethod
     def for_config(cls, cfg: TrainConfig, num_views: int) -> TrainingETA:
@@ -96,13 +104,12 @@ class TrainingETA:
 
     def record(self, step: int, seconds: float) -> None:
         """Step ``step`` (0-based) took ``seconds``."""
-        phase = int(step >= self.first_full)
-        self._seconds[phase] += seconds
-        self._count[phase] += 1
+        self._recent[int(step >= self.first_full)].append(seconds)
 
     def step_s(self, full: bool) -> float | None:
-        """Seconds per step of a phase: its measured mean, else predicted from the other phase."""
-        recon, full_ = (s / n if n else None for s, n in zip(self._seconds, self._count, strict=True))
+        """Seconds per step of a phase: the mean of its recent steps, else predicted from the other
+        phase's."""
+        recon, full_ = (sum(r) / len(r) if r else None for r in self._recent)
         if full:
             return full_ if full_ is not None else (None if recon is None else recon * self.ratio)
         return recon if recon is not None else (None if full_ is None else full_ / self.ratio)
