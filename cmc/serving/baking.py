@@ -230,6 +230,9 @@ class BakedScene:
     )
     _fields: list[TextureField] | None = field(default=None, repr=False)
     _geometry: list[MPIGeometry] | None = field(default=None, repr=False)
+    # The reference camera centres [N, 3] and their mean baseline, for the CPU path's blend weights.
+    _centers: np.ndarray | None = field(default=None, repr=False)
+    _baseline: float = field(default=1.0, repr=False)
 
     @staticmethod
     def load(folder: str | Path, device: str | torch.device = "cpu") -> BakedScene:
@@ -335,11 +338,12 @@ class BakedScene:
         from cmc.serving.texture_kernel import MPIGeometry
         from cmc.serving.texture_kernel import render as render_packed
 
-        if self._geometry is None:
+        if self._geometry is None or self._centers is None:
             self._geometry = [MPIGeometry.from_frame(f) for f in self.frames]
-        centers = np.stack([np.linalg.inv(g.ref_from_world)[:3, 3] for g in self._geometry])
+            self._centers = np.stack([f.world_from_ref[:3, 3].cpu().numpy() for f in self.frames]).astype(np.float64)
+            self._baseline = mean_baseline(self._centers)
         target = np.asarray(world_from_cam, dtype=np.float64)[:3, 3]
-        weights, use = select_mpis(blend_weights(centers, target, mean_baseline(centers)), mpi_index, min_weight)
+        weights, use = select_mpis(blend_weights(self._centers, target, self._baseline), mpi_index, min_weight)
         rgb, depth, acc = render_packed(
             self.packed,
             self._geometry,
