@@ -29,10 +29,10 @@ test: install chromium jq  ## the whole test suite (what CI runs)
 	$(VENV)/bin/ruff format --check .
 	CMC_SHARED_DIR=$(SHARED) $(VENV)/bin/python -m pytest -q
 
-bench-fern: install  ## LLFF fern, fast preset, CPU (about 5 minutes), then regenerate bench/RESULTS.md
+bench-fern: install  ## LLFF fern, fast preset, CPU (about 5 minutes): bench/reports/current/bench_fern.md, to compare with bench/RESULTS.md
 	CMC_LPIPS_DIR=$(SHARED)/weights $(VENV)/bin/cmc bench llff --data $(SHARED)/datasets/llff \
-		--scenes fern --preset fast --out bench/fern_fast_cpu.json --save-dir bench/runs
-	$(VENV)/bin/python bench/make_results.py
+		--scenes fern --preset fast --out bench/reports/current/bench_fern.json --save-dir bench/runs
+	cat bench/reports/current/bench_fern.md
 
 deployment-test: install  ## build the images, start docker-compose.yml, run every job and fault check (bench/deployment_test.py; 11 min on 2 cores, Docker needed)
 	$(VENV)/bin/python bench/deployment_test.py $(if $(wildcard $(SHARED)/tools/offline-docker),--offline-docker $(SHARED)/tools/offline-docker)

@@ -13,7 +13,7 @@ too (``--views``), only to see afterwards whether validation predicted them.
 Usage::
 
     PYTHONPATH=. CMC_LPIPS_DIR=../shared/weights .venv/bin/python bench/blend_explore.py \\
-        --scenes fern,room,trex --bakes /tmp/bakes --out bench/blend_explore.json
+        --scenes fern,room,trex --bakes /tmp/bakes --out bench/reports/current/blend_explore.json
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ not ignored files) with a throw-away ``.env`` (random secrets, free ports), as t
 Redis, PostgreSQL and MinIO, its local CPU torch index for the build, its compose v1 wrapper.
 Test-only settings (``docker-compose.deploytest.yml``, written into the copy): webhooks may go to
 a receiver on this host's Docker network. The report (times per stage, image sizes, build time,
-every check) goes to ``--out`` (default bench/deployment_test.json).
+every check) goes to ``--out`` (default bench/reports/current/deployment_test.json).
 
 Checks, in order: every healthcheck; one job through the API (three fern JPEGs, a short training):
 status stages, cameras, camera path, render, depth, viewer, MPI atlas and glb through presigned
@@ -493,7 +493,7 @@ def main() -> int:
     ap.add_argument("--offline-docker", type=Path, help="../shared/tools/offline-docker on a host without a registry")
     ap.add_argument("--keep", action="store_true", help="leave the stack running (and the scratch copy)")
     ap.add_argument("--no-cache", action="store_true", help="build the images without Docker's layer cache")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "deployment_test.json")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "reports" / "current" / "deployment_test.json")
     args = ap.parse_args()
     offline = args.offline_docker.resolve() if args.offline_docker else None
     gpu = shutil.which("nvidia-smi") is not None

@@ -2,7 +2,7 @@
 
 Usage: PYTHONPATH=. python bench/explore_fern.py NAME '{"steps": 400, "model": {"num_planes": 48}}'
 Appends one line to /tmp/exp_results.txt (its lines from development are in
-bench/exploration_fern_400steps.txt). Overrides: top-level TrainConfig fields, and "loss",
+bench/reports/current/exploration_fern_400steps.txt). Overrides: top-level TrainConfig fields, and "loss",
 "model", "pyramid" dicts for the nested configs.
 """
 

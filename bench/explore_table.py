@@ -10,13 +10,15 @@ import json
 from pathlib import Path
 
 BENCH = Path(__file__).resolve().parent
+REPORTS = BENCH / "reports" / "history"  # the rounds' JSON-lines reports
 SCENES = ("fern", "room", "trex")
 # (report, command, what the round asked); every row is compared with the round-3 `base` (the
 # preset itself, trained the same day on the same machine; training is deterministic).
 ROUNDS = [
     (
         "explore_gpu_round3.jsonl",
-        "GIT_COMMIT=118a6c7 VARIANTS=bench/explore_gpu_round3_variants.json bash bench/gpu_run.sh 560 profile explore",
+        "GIT_COMMIT=118a6c7 VARIANTS=bench/reports/history/explore_gpu_round3_variants.json "
+        "bash bench/gpu_run.sh 560 profile explore",
         "the sweep's semi-global penalties (P1, P2), with and without P2 falling at the photo's edges "
         "(`stereo_smoothness_edges`, since deleted); a Charbonnier reconstruction penalty (deleted); "
         "fewer steps, more planes, a lower final learning rate",
@@ -24,7 +26,8 @@ ROUNDS = [
     (
         "explore_gpu_round4.jsonl",
         "PYTHONPATH=. CMC_LPIPS_DIR=.gpudata/weights python3 bench/explore_gpu.py "
-        "bench/explore_gpu_round4_variants.json $OUT --data .gpudata/llff --scenes fern,room,trex --lpips "
+        "bench/reports/history/explore_gpu_round4_variants.json $OUT --data .gpudata/llff "
+        "--scenes fern,room,trex --lpips "
         "--workers 9 --seconds 15 --grace 185",
         "round 3's gains together: (0.2, 2.0) with 300 steps and/or 64 planes",
     ),
@@ -33,7 +36,7 @@ ADOPTED = "sgm2_steps300"
 
 
 def _load(name: str) -> list[dict]:
-    return [json.loads(line) for line in (BENCH / name).read_text().splitlines() if line.strip()]
+    return [json.loads(line) for line in (REPORTS / name).read_text().splitlines() if line.strip()]
 
 
 def _cell(rec: dict | None, base: dict, kind: str) -> str:
@@ -59,7 +62,7 @@ def main() -> None:
         "LPIPS-vgg, in brackets the change against the preset (`base`) of the same day. LPIPS-vgg here",
         "uses 8-bit weights (bench/gpudata.py; within 3e-4 of the float weights on photo pairs). The CUDA",
         "`base` scores what the CPU scores (fern 22.09 / 0.700 / 0.249 against 22.10 / 0.700 / 0.249 in",
-        "bench/SCENES.md). Test views are shown only to see afterwards whether validation predicted them.",
+        "bench/RESULTS.md). Test views are shown only to see afterwards whether validation predicted them.",
         f"Machine: {first['device']}, 16 CPU cores, lent through the device tool; nine trainings at once,",
         f"so train seconds are not comparable. Date: {first['date']}.",
         "",

@@ -12,7 +12,7 @@ Usage (repository root)::
 
     CMC_LPIPS_DIR=../shared/weights .venv/bin/python bench/fern_every_view.py \\
         --baked previous=/tmp/runs_prev/fast/fern/baked --baked now=/tmp/runs/fast/fern/baked \\
-        [--data ../shared/datasets/llff/fern] [--out bench/fern_every_view.json]
+        [--data ../shared/datasets/llff/fern] [--out bench/reports/current/fern_every_view.json]
 """
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default="../shared/datasets/llff/fern")
     ap.add_argument("--baked", action="append", required=True, metavar="LABEL=DIR")
-    ap.add_argument("--out", default="bench/fern_every_view.json")
+    ap.add_argument("--out", default="bench/reports/current/fern_every_view.json")
     args = ap.parse_args()
     torch.set_num_threads(os.cpu_count() or 1)
     num_images = len(np.load(Path(args.data) / "poses_bounds.npy"))

@@ -18,11 +18,11 @@ Shapes, each a fresh server process per measurement (so its high-water mark is i
 Peak = ``VmHWM`` of the server process (/proc/PID/status); ``idle`` = its ``VmRSS`` after one
 small upload (everything imported). Linux only.
 
-Usage (from the repository root; writes bench/intake_memory.json)::
+Usage (from the repository root; writes bench/reports/current/intake_memory.json)::
 
-    python bench/intake_memory.py --out bench/intake_memory.json
+    python bench/intake_memory.py --out bench/reports/current/intake_memory.json
     python bench/intake_memory.py --label before --counts 1 4 --kinds png --shapes api \\
-        --out bench/intake_memory_before.json     # on the code before the fix (git stash)
+        --out bench/reports/current/intake_memory_before.json     # on the code before the fix (git stash)
 """
 
 from __future__ import annotations
@@ -188,7 +188,7 @@ def measure(shape: str, kind: str, n: int, photo, tmp: Path, env: dict[str, str]
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", default="bench/intake_memory.json")
+    ap.add_argument("--out", default="bench/reports/current/intake_memory.json")
     ap.add_argument("--label", default="after", help="what code this measures (after / before)")
     ap.add_argument("--counts", type=int, nargs="+", default=[1, 4, 16])
     ap.add_argument("--kinds", nargs="+", default=["png", "webp"], choices=["png", "webp"])

@@ -11,7 +11,7 @@ of the last 5 s are left out (a few seconds' error is a large share of nothing).
 
 Usage (repository root, nothing else running):
     PYTHONPATH=. python bench/job_timeline.py --data ../shared/datasets/llff/fern --steps 80,300 \\
-        --out bench/job_timeline_fern_cpu.json
+        --out bench/reports/current/job_timeline_fern_cpu.json
 writes the report and a markdown table beside it (``.md``); ``--table REPORT.json`` prints the
 table of an earlier report.
 """

@@ -6,7 +6,7 @@ bit (checked here on the alpha of every MPI).
 Usage::
 
     PYTHONPATH=. .venv/bin/python bench/model_build_time.py --data ../shared/datasets/llff/fern \\
-        --repeats 2 --out bench/model_build_time_fern.json
+        --repeats 2 --out bench/reports/current/model_build_time_fern.json
 """
 
 from __future__ import annotations

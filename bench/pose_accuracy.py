@@ -9,7 +9,7 @@ dataset's poses come from COLMAP on every photo of the scene, so they stand for 
 No training: a few seconds per triple.
 
     PYTHONPATH=. .venv/bin/python bench/pose_accuracy.py --data ../shared/datasets/llff \
-        --scenes fern room trex --out bench/pose_accuracy.json
+        --scenes fern room trex --out bench/reports/current/pose_accuracy.json
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import numpy as np
 from PIL import Image
 
 from bench.poses_e2e import alignment, with_exif_focal
-from bench.scoreboard import pose_accuracy_table
+from bench.results import pose_accuracy_table
 from cmc.data.datasets import load_llff
 from cmc.errors import PoseEstimationError
 from cmc.eval.bench import git_commit

@@ -5,7 +5,7 @@ about a random axis and ``FRAC`` of the mean baseline in a random direction (see
 of the errors `bench/pose_accuracy.py` measures for three photos), the `fast` preset trains on
 them with the given ``--set`` settings (``pose_lr=0.001``: the pose corrections of commit
 "training: pose refinement" below), and the validation views are scored at their dataset poses.
-One JSON line per run is appended to bench/pose_refinement.jsonl.
+One JSON line per run is appended to bench/reports/history/pose_refinement.jsonl (the log of its runs).
 
     PYTHONPATH=. .venv/bin/python bench/pose_refinement.py trex 0.3 0.015 [--set pose_lr=0.001]
 
@@ -78,7 +78,7 @@ def main() -> None:
         "date": dt.date.today().isoformat(),
     }
     print(json.dumps(record), flush=True)
-    with open(Path(__file__).with_name("pose_refinement.jsonl"), "a") as f:
+    with open(Path(__file__).parent / "reports" / "history" / "pose_refinement.jsonl", "a") as f:
         f.write(json.dumps(record) + "\n")
 
 

@@ -45,7 +45,8 @@ search cannot), and ``focal`` refines each test view's focal length with its pos
 Usage::
 
     nice -n 19 .venv/bin/python bench/poses_e2e.py --data ../shared/datasets/llff/fern --steps 400 \\
-        --lpips-dir ../shared/weights --out bench/poses_e2e.json [--refine-test-poses [pose|focal|model]]
+        --lpips-dir ../shared/weights --out bench/reports/current/poses_e2e.json \\
+        [--refine-test-poses [pose|focal|model]]
 """
 
 from __future__ import annotations
@@ -546,7 +547,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--seed", type=int, default=0, help="training and SfM seed (both runs)")
     ap.add_argument("--lpips-dir", default=os.environ.get("CMC_LPIPS_DIR"), help="folder with lpips_alex.pth")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--out", type=Path, default=Path("bench/poses_e2e.json"), help="JSON report")
+    ap.add_argument("--out", type=Path, default=Path("bench/reports/current/poses_e2e.json"), help="JSON report")
     ap.add_argument("--save-dir", type=Path, help="also write the rendered test views and baked models here")
     ap.add_argument(
         "--exif-focal",

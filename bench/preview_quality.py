@@ -6,11 +6,11 @@ Step 0 is the model as the plane sweep starts it (a job with ``CMC_PREVIEW_AT=0`
 that). Each row gives the step, the seconds from the start of the model build to the end of that
 bake (training time included, the bakes and scoring before it not), and the baked renders' mean
 PSNR / SSIM on the test views. Pose estimation, before the model build in a job, is not in it
-(bench/poses_fern.md: 12.7 s on fern's phone photos).
+(bench/reports/history/poses_fern.md: 12.7 s on fern's phone photos).
 
 Usage (repository root, nothing else running):
     PYTHONPATH=. python bench/preview_quality.py --data ../shared/datasets/llff/fern \
-        --steps-at 0,10,20,45,90 --out bench/preview_quality_fern.json
+        --steps-at 0,10,20,45,90 --out bench/reports/current/preview_quality_fern.json
 """
 
 from __future__ import annotations

@@ -12,12 +12,12 @@ Stages, each timed with the device synchronised at its ends:
     (``cmc.serving.baking.bake``), each scored on the test views (PSNR; the scoring is not
     timed); ``load`` (``BakedScene.load``), the first render of a test view and the median of
     ``--renders`` more.
-Pose estimation is not in it (bench/poses_fern.md times it on the phone photos). The split
+Pose estimation is not in it (bench/reports/history/poses_fern.md times it on the phone photos). The split
 training loop syncs the device three times a step, which the service's loop does not.
 
 Usage (repository root):
     PYTHONPATH=. python bench/profile_job.py --data ../shared/datasets/llff/fern --device cpu \
-        --out bench/profile_job_fern_cpu.json
+        --out bench/reports/current/profile_job_fern_cpu.json
 prints a markdown table (seconds and share per stage) and writes it with the raw timings as JSON;
     python bench/profile_job.py --update-md bench/PROFILE.md REPORT.json [REPORT.json ...]
 rewrites the table between ``<!-- profile-table -->`` and ``<!-- /profile-table -->`` in that

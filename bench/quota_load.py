@@ -22,10 +22,9 @@ is reached within the run.
    concurrency quota; renders admitted per key within the rolling-second bound; and the
    replicas' ``cmc_rate_limited_total`` summing to the clients' 429s.
 
-Usage (from the repository root; writes bench/quota_load_cpu.json, then run
-``python bench/make_results.py``)::
+Usage (from the repository root; writes bench/reports/current/quota_load_cpu.json)::
 
-    python bench/quota_load.py --out bench/quota_load_cpu.json
+    python bench/quota_load.py --out bench/reports/current/quota_load_cpu.json
 """
 
 from __future__ import annotations
@@ -116,7 +115,7 @@ def rate_limited_totals(text: str) -> dict[str, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", default="bench/quota_load_cpu.json")
+    ap.add_argument("--out", default="bench/reports/current/quota_load_cpu.json")
     ap.add_argument("--clients", type=int, default=50)
     ap.add_argument("--keys", type=int, default=5)
     ap.add_argument("--seconds", type=float, default=60.0)

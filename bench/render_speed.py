@@ -12,7 +12,7 @@ and p90 per view and over all renders.
 Usage (repository root)::
 
     .venv/bin/python bench/render_speed.py [--data ../shared/datasets/llff/fern] [--steps 3]
-        [--repeats 7] [--baked DIR] [--before OLD_RENDERING.py] [--out bench/render_speed_cpu.json]
+        [--repeats 7] [--baked DIR] [--before OLD_RENDERING.py] [--out bench/reports/current/render_speed_cpu.json]
 
 ``--baked DIR`` reuses a bake already in DIR (or writes the new bake there), so repeated
 measurements time the same textures.
@@ -128,7 +128,7 @@ def main() -> None:
         help="an older bake of the same scene to time alternately, with the current renderer",
     )
     ap.add_argument("--threads", type=int, default=None, help="CPU threads per render (default: one per core)")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench/render_speed_cpu.json")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench/reports/current/render_speed_cpu.json")
     args = ap.parse_args()
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -30,11 +30,11 @@ cost depends on the alphas, and a few training steps leave them unlike a trained
    a request's latency runs from its first send to its image. p50 / p95 / max, and errors (an
    answer other than a PNG of the right size, or no answer within 120 s).
 
-Usage (from the repository root; writes bench/service_cpu.json, or with ``--load``
-bench/service_load_cpu.json)::
+Usage (from the repository root; writes bench/reports/current/service_cpu.json, or with ``--load``
+bench/reports/current/service_load_cpu.json)::
 
-    python bench/service_bench.py --data ../shared/datasets/llff/fern --out bench/service_cpu.json
-    python bench/service_bench.py --load --baked /tmp/bake --steps 20 --out bench/service_load_cpu.json
+    python bench/service_bench.py --data ../shared/datasets/llff/fern --out bench/reports/current/service_cpu.json
+    python bench/service_bench.py --load --baked /tmp/bake --steps 20 --out bench/reports/current/service_load_cpu.json
 """
 
 from __future__ import annotations
@@ -301,7 +301,7 @@ def load_bench(args) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", default="../shared/datasets/llff/fern")
-    ap.add_argument("--out", default="bench/service_cpu.json")
+    ap.add_argument("--out", default="bench/reports/current/service_cpu.json")
     ap.add_argument("--steps", type=int, default=50)
     ap.add_argument("--uploads", type=int, default=7)
     ap.add_argument("--renders", type=int, default=30)

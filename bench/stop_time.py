@@ -18,9 +18,9 @@ afterwards; for ``celery`` whether the training message is back in the queue for
 A process still running ``--grace`` seconds after SIGTERM (compose's stop_grace_period, 30 s) is
 killed with SIGKILL, as Docker does, and recorded so.
 
-Usage (from the repository root; writes bench/stop_time.json)::
+Usage (from the repository root; writes bench/reports/current/stop_time.json)::
 
-    python bench/stop_time.py --data ../shared/datasets/llff/fern --out bench/stop_time.json
+    python bench/stop_time.py --data ../shared/datasets/llff/fern --out bench/reports/current/stop_time.json
 """
 
 from __future__ import annotations
@@ -143,7 +143,7 @@ def run(shape: str, args: argparse.Namespace, tmp: Path) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", default="../shared/datasets/llff/fern")
-    ap.add_argument("--out", default="bench/stop_time.json")
+    ap.add_argument("--out", default="bench/reports/current/stop_time.json")
     ap.add_argument("--label", default="after", help="what code this measures (after / before)")
     ap.add_argument("--shapes", nargs="+", default=["celery", "embedded"], choices=["celery", "embedded"])
     ap.add_argument("--steps", type=int, default=400)

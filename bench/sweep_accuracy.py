@@ -18,7 +18,7 @@ at a test view (fern's points were triangulated by COLMAP from all 20 photos, te
 Usage (repository root)::
 
     .venv/bin/python bench/sweep_accuracy.py [--data ../shared/datasets/llff/fern] \\
-        [--out bench/sweep_accuracy.json]
+        [--out bench/reports/current/sweep_accuracy.json]
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from cmc.mpi.rendering import MPIFrame
 # (label, cost, softmin temperature, supersample, (P1, P2) of semi-global aggregation, occlusion
 # aware: the best-matching other view's cost, else the mean of the views'): the starts of the
 # `fast` presets in turn, the fourth that of `fast` now; the last with the two other views' costs
-# averaged (tried, not adopted: bench/RESULTS.md).
+# averaged (tried, not adopted: bench/reports/history/RESULTS-until-2026-11-27.md).
 COSTS = (
     ("ad", "ad", 0.01, 1, (0.0, 0.0), True),
     ("ad_census", "ad_census", 0.1, 1, (0.0, 0.0), True),
@@ -153,7 +153,7 @@ def score(scene: Scene, targets: list[tuple[np.ndarray, np.ndarray]]) -> dict[st
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", type=Path, default=Path("../shared/datasets/llff/fern"))
-    ap.add_argument("--out", type=Path, default=Path("bench/sweep_accuracy.json"))
+    ap.add_argument("--out", type=Path, default=Path("bench/reports/current/sweep_accuracy.json"))
     args = ap.parse_args()
     torch.set_grad_enabled(False)
     scenes = {"fern": score(*fern_targets(args.data))}

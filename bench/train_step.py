@@ -11,7 +11,7 @@ process is spared the sweep's 45 s.
 Usage (from the repository root; writes the report and prints it)::
 
     python bench/train_step.py --data ../shared/datasets/llff/fern --before 72b0bd5 \
-        --out bench/train_step_cpu.json
+        --out bench/reports/current/train_step_cpu.json
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ reference view, which the MPI only learned from the other views, then weighs les
 
 Usage (after ``cmc bench synthetic --save-dir RUNS``; scenes are read from RUNS/<preset>/<scene>/baked)::
 
-    PYTHONPATH=. python bench/visibility_blend.py --runs RUNS/fast --out bench/visibility_blend.json
+    PYTHONPATH=. python bench/visibility_blend.py --runs RUNS/fast --out bench/reports/current/visibility_blend.json
 """
 
 from __future__ import annotations

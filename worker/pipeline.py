@@ -194,7 +194,7 @@ def failure_code(e: BaseException) -> ErrorCode | None:
 
 
 # Share of pose estimation done when a stage starts, for the status' progress (SfM's stages report
-# nothing finer): the median stage times on fern's three 12 MP phone photos (bench/poses_fern.md:
+# nothing finer): the median stage times on fern's three 12 MP phone photos (bench/reports/history/poses_fern.md:
 # intake 1.2 s, SIFT 9.4 s, matching 1.7 s, mapping 0.2 s of 12.7 s).
 POSE_STAGE_PROGRESS = {
     "intake": 0.0,

@@ -6,7 +6,7 @@ training spends most of its time on.
 zero outside the texture), for the per-plane textures of :class:`cmc.mpi.fields.PyramidPlaneField`. On the CPU,
 torch's backward of ``grid_sample`` allocated and zeroed a gradient the size of every texture
 per call and scattered into it at about half the speed of the kernel here; a training step of
-fern spent about half its time there (bench/RESULTS.md, section "Training time").
+fern spent about half its time there (bench/reports/history/RESULTS-until-2026-11-27.md, section "Training time").
 
 Plane k of the samples reads texture ``plane_texture[k]`` of each tensor (the identity for the
 per-plane levels, the plane's group for the shared base colours). Work is split over threads by

@@ -61,7 +61,7 @@ from cmc.errors import BakedFormatError
 # such faint alpha on a fifth of fern's texels (where the alpha entropy prior does not reach:
 # behind surfaces, outside every view); it barely shows (colour PSNR 52-57 dB against keeping
 # it, at fern's test views) but every such texel makes the renderer take a sample: without it a
-# fern render takes 22 % less time (bench/RESULTS.md, serving cost).
+# fern render takes 22 % less time (bench/reports/history/RESULTS-until-2026-11-27.md, serving cost).
 ALPHA_FLOOR = 2
 
 FORMAT = "cmc-mpi"

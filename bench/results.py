@@ -1,20 +1,28 @@
-"""Write bench/SCOREBOARD.md: the current numbers of the `fast` preset on one page, each table
-from the JSON reports it names (numbers are never typed). The pages that hold how each number
-came to be are listed at its end.
+"""Write bench/RESULTS.md: the current numbers of the `fast` preset first, each table from the
+JSON reports it names (numbers are never typed), then the experiments of bench/experiments.toml,
+one table per question, each row set against the row above it of the same scene and views.
 
-Usage: python bench/scoreboard.py  (from the repository root)
+Reports live in bench/reports/current (the measurements of the preset and service as they are
+now) and bench/reports/history (everything measured before, kept as measured). A new measurement
+of today's preset is written to current/ and replaces its entry below; the one it replaces moves to
+history/.
+
+Usage: python bench/results.py  (from the repository root)
 """
 
 from __future__ import annotations
 
 import json
+import tomllib
 from pathlib import Path
 from typing import Any
 
 HERE = Path(__file__).resolve().parent
+REPORTS = HERE / "reports"
 
-# The current report of each kind. A new measurement of today's preset replaces its entry here.
+# The current report of each kind (in reports/current).
 SCENE_REPORTS = {s: f"scenes_{s}_test_sgm2_steps300.json" for s in ("fern", "room", "trex")}
+VAL_REPORTS = {s: f"preset_val_{s}.json" for s in ("fern", "room", "trex")}
 SYNTHETIC_REPORT = "view_quality_synthetic_sgm2_steps300.json"
 POSE_REPORTS = {
     "fern": "poses_e2e_fern_wide.json",
@@ -27,21 +35,35 @@ PREVIEW_REPORT = "preview_quality_fern_half.json"
 TIMELINE_REPORT = "job_timeline_fern_cpu.json"
 BUILD_REPORT = "model_build_time_fern.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
+SERVICE_REPORT = "service_cpu.json"
+DEPLOYMENT_REPORT = "deployment_test.json"
 # Issue 38's targets on the test views: PSNR / SSIM / LPIPS-vgg (None: no target).
 TARGETS = {"fern": (23.8, 0.78, 0.17), "room": (21.40 + 1.5, None, 0.25), "trex": (20.24 + 1.5, None, 0.25)}
 PAGES = [
-    ("SCENES.md", "view quality per scene, every experiment on the real scenes' validation and test views"),
-    ("EXPLORE.md", "variants of `fast` on the validation views of fern, room and trex (lent GPU)"),
     ("PRESET_HISTORY.md", "why each setting of `fast` is what it is, oldest first"),
-    ("PROFILE.md", "where the time of one job goes, stage by stage, on the CPU and a GPU"),
+    ("EXPLORE.md", "variants of `fast` on the validation views of fern, room and trex (lent GPU)"),
+    ("PROFILE.md", "where the time of one job goes, stage by stage, on the CPU and a GPU; speed changes tried"),
     ("DIAGNOSIS.md", "where views go wrong and what was tried against it"),
     ("poses_e2e.md", "how the estimated-pose runs are registered and scored"),
-    ("RESULTS.md", "every earlier measurement (serving, service, load, poses, ablations), as measured"),
+    ("job_timeline.md", "the whole job through `cmc serve`, run by run"),
+    ("preview_quality.md", "how good a preview is after how much training"),
+    (
+        "reports/history/RESULTS-until-2026-11-27.md",
+        "every earlier measurement (serving, service, load, poses, ablations), as measured, with commands",
+    ),
 ]
 
 
+def find(name: str) -> Path:
+    """The report ``name`` in reports/current, else in reports/history."""
+    for folder in ("current", "history"):
+        if (REPORTS / folder / name).exists():
+            return REPORTS / folder / name
+    raise FileNotFoundError(f"no report {name} in {REPORTS}/current or history")
+
+
 def load(name: str) -> dict[str, Any] | None:
-    path = HERE / name
+    path = REPORTS / "current" / name
     return json.loads(path.read_text()) if path.exists() else None
 
 
@@ -60,10 +82,12 @@ def view_quality() -> list[str]:
         "",
         "RegNeRF's 3-view protocol at 504x378 (every 8th image tested, 3 training views evenly from the",
         "rest), baked renderer, 2-core CPU. `CMC_LPIPS_DIR=../shared/weights cmc bench llff --data",
-        "../shared/datasets/llff --scenes S --views test --out bench/REPORT`.",
+        "../shared/datasets/llff --scenes S --views test --out bench/reports/current/REPORT`; the validation",
+        "views (`--views val`: the images neither trained on nor tested, on which settings are chosen) in",
+        "the last column.",
         "",
-        "| scene | PSNR / SSIM / LPIPS-vgg | target (issue 38) | met | train s | report |",
-        "|---|---|---|---|---|---|",
+        "| scene | PSNR / SSIM / LPIPS-vgg | target (issue 38) | met | train s | report | validation views |",
+        "|---|---|---|---|---|---|---|",
     ]
     for scene, name in SCENE_REPORTS.items():
         r = load(name)
@@ -77,13 +101,16 @@ def view_quality() -> list[str]:
             for i, (k, v) in enumerate(zip(("psnr", "ssim", "lpips_vgg"), t, strict=True))
         )
         verdict = "yes" if met else "no"
-        out.append(f"| {scene} | {triple(m)} | {target} | {verdict} | {m['train_seconds']:.0f} | {source(r, name)} |")
+        v = load(VAL_REPORTS[scene])
+        val = f"{triple(v['mean'])} ({source(v, VAL_REPORTS[scene])})" if v else "not run"
+        row = f"| {scene} | {triple(m)} | {target} | {verdict} | {m['train_seconds']:.0f} | {source(r, name)} | {val} |"
+        out.append(row)
     r = load(SYNTHETIC_REPORT)
     if r is not None:
         out += [
             "",
             "The wide-baseline synthetic set (cards, posts, slanted; known depth): `CMC_LPIPS_DIR=../shared/weights",
-            f"cmc bench synthetic --out bench/REPORT`, {source(r, SYNTHETIC_REPORT)}.",
+            f"cmc bench synthetic --out bench/reports/current/REPORT`, {source(r, SYNTHETIC_REPORT)}.",
             "",
             "| views | PSNR / SSIM / LPIPS-vgg | median depth error |",
             "|---|---|---|",
@@ -99,7 +126,7 @@ def poses() -> list[str]:
         "## The whole product path: trained from the poses `cmc poses` estimates",
         "",
         "`python bench/poses_e2e.py --data ../shared/datasets/llff/S --steps N --lpips-dir ../shared/weights",
-        "--out bench/REPORT`: the same pixels trained once with the dataset's poses and once with",
+        "--out bench/reports/current/REPORT`: the same pixels trained once with the dataset's poses and once with",
         "the poses SfM estimates from the three training photos, the held-out views registered into the",
         'estimated frame (`poses_e2e.md`). Target (issue 38): within 0.5 dB. The column "after',
         'registering to the model" (`--refine-test-poses model`) registers each held-out photo to each',
@@ -236,21 +263,108 @@ def serving() -> list[str]:
     ]
 
 
-def main() -> None:
+def service() -> list[str]:
+    out = []
+    r = load(SERVICE_REPORT)
+    if r is not None:
+        render, up, scene, many = r["render"], r["upload"], r["scene"], r["concurrent"]
+        w, h = render["size"]
+        out += [
+            "## Service: the API on this machine (`cmc serve`'s stack: uvicorn, a Celery worker, Redis)",
+            "",
+            f"`{r['command']}`, {source(r, SERVICE_REPORT)}: an upload of the three fern JPEGs",
+            f"{1000 * up['median_s']:.0f} ms (median of {len(up['seconds'])}), a {scene['steps']}-step scene",
+            f"ready in {scene['seconds_to_ready']:.0f} s, a {w}x{h} render through the API p50",
+            f"{1000 * render['p50_s']:.0f} ms, p90 {1000 * render['p90_s']:.0f} ms; {many['requests']} renders at",
+            f"once: {many['ok']} answered, median {many['median_s']:.1f} s. Renders under load, quotas,",
+            "stopping and restarting: the history page below.",
+            "",
+        ]
+    d = load(DEPLOYMENT_REPORT)
+    if d is not None:
+        m = d["measured"]
+        peak = {k: v / 2**20 for k, v in m["peak_memory_bytes"].items()}
+        passed = sum(c["ok"] for c in d["checks"])
+        stages = ", ".join(f"{k} {v:.0f} s" for k, v in m["job_stages_seconds"].items())
+        out += [
+            "## Deployment: docker-compose.yml's stack started from its images",
+            "",
+            f"`{d['command']}` ({d['date']}, {d['host']}): {passed} of {len(d['checks'])} checks passed; a",
+            f"20-step job {m['job_seconds']:.0f} s ({stages}); first render {m['render_ms']['first']} ms, then",
+            f"{m['render_ms']['loaded_median']} ms (median); peak memory of the CPU worker",
+            f"{peak['worker-cpu']:.0f} MiB, the API {peak['api']:.0f} MiB.",
+        ]
+    return out
+
+
+def _cells(r: dict[str, Any]) -> tuple[str, str, dict[str, Any], str]:
+    """(scene, views, the main metrics, the triple cell) of a `cmc bench` report; the synthetic
+    set's main metrics are its halfway views'."""
+    scene = "+".join(s["scene"] for s in r["scenes"])
+    views = r.get("scored_views", "test")
+    if "halfway" in r["mean"]:
+        views = "synthetic"
+        m = r["mean"]["halfway"]
+        near, beyond = r["mean"]["near"]["psnr"], r["mean"]["beyond"]["psnr"]
+        cell = f"{triple(m)} (halfway); near {near:.2f}, beyond {beyond:.2f} dB"
+    else:
+        m = r["mean"]
+        cell = triple(m)
+    if r.get("near_scale", 1.0) != 1.0:
+        views += f", near x {r['near_scale']:g}"
+    return scene, views, m, cell
+
+
+def experiments() -> list[str]:
+    """One table per question of bench/experiments.toml."""
+    questions = tomllib.loads((HERE / "experiments.toml").read_text())["question"]
     out = [
-        "# Scoreboard: the current numbers",
+        "## Experiments: one table per question",
         "",
-        "Generated by `python bench/scoreboard.py` from the reports named in each table. Each number is",
-        "of the `fast` preset as it is now unless its row says otherwise; how it came to be is in the pages",
-        "listed at the end.",
+        "From `bench/experiments.toml` (what each run changed and the verdict); each report written by",
+        "`CMC_LPIPS_DIR=../shared/weights cmc bench llff --data ../shared/datasets/llff --scenes S --views V",
+        "[--near-scale X] [--set KEY=VALUE] --out bench/reports/current/REPORT` (or `cmc bench synthetic`)",
+        "on the 2-core CPU. Each row is set against the row above of the same scene and views, or against",
+        "the report its `vs` names.",
         "",
     ]
-    for section in (view_quality(), poses(), pose_accuracy(), speed(), serving()):
+    head = "| scene | views | change | PSNR / SSIM / LPIPS-vgg | vs the row above | verdict | date | report |"
+    for q in questions:
+        out += [f"### {q['title']}", "", head, "|---|---|---|---|---|---|---|---|"]
+        last: dict[tuple[str, str], dict[str, Any]] = {}
+        for run in q["runs"]:
+            r = json.loads(find(run["report"]).read_text())
+            scene, views, m, cell = _cells(r)
+            before = _cells(json.loads(find(run["vs"]).read_text()))[2] if "vs" in run else last.get((scene, views))
+            delta = (
+                f"{m['psnr'] - before['psnr']:+.2f} / {m['ssim'] - before['ssim']:+.3f} / "
+                f"{m['lpips_vgg'] - before['lpips_vgg']:+.3f}"
+                if before
+                else ""
+            )
+            last[(scene, views)] = m
+            cols = [scene, views, run["change"], cell, delta, run["verdict"], str(r["date"])[:10], run["report"]]
+            out.append("| " + " | ".join(cols) + " |")
+        out.append("")
+    return out
+
+
+def main() -> None:
+    out = [
+        "# Results: the current numbers, then the experiments",
+        "",
+        "Generated by `python bench/results.py` from the reports named in each table: those of the",
+        "preset and the service as they are now in `bench/reports/current/`, everything measured before",
+        "in `bench/reports/history/`, kept as measured. Each number in the first sections is of the",
+        "`fast` preset as it is now unless its row says otherwise.",
+        "",
+    ]
+    for section in (view_quality(), poses(), pose_accuracy(), speed(), serving(), service(), experiments()):
         if section:
             out += [*section, ""]
     out += ["## Where the history is", ""]
     out += [f"- `bench/{page}`: {what}" for page, what in PAGES]
-    (HERE / "SCOREBOARD.md").write_text("\n".join(out) + "\n")
+    (HERE / "RESULTS.md").write_text("\n".join(out) + "\n")
 
 
 if __name__ == "__main__":
