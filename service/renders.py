@@ -178,7 +178,7 @@ def png_bytes(image: np.ndarray) -> bytes:
     Every row gets the PNG "sub" filter (each byte minus the one a pixel to its left), then zlib
     level 1 with its run-length strategy. Pillow tries all five PNG filters on every row and keeps
     the best (as libpng does): on a 504x378 view that took 14 ms against 6 ms here, for 4 % fewer
-    bytes (bench/RESULTS.md, serving cost).
+    bytes (bench/reports/history/RESULTS-until-2026-11-27.md, serving cost).
     """
     channels = 1 if image.ndim == 2 else image.shape[2]
     colour_type = {1: 0, 2: 4, 3: 2, 4: 6}.get(channels)  # grey, grey + alpha, RGB, RGBA

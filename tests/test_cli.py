@@ -175,3 +175,16 @@ def test_user_errors_are_cmc_errors_and_bugs_stay_bugs(tmp_path, capsys, monkeyp
     monkeypatch.setattr(cmc.cli, "cmd_export", bug)
     with pytest.raises(ValueError, match="a programming error"):
         main(["export", str(tmp_path), "--out", str(tmp_path / "x.glb")])
+
+
+def test_bench_markdown_table_has_a_row_per_scene_then_the_mean():
+    from cmc.eval.bench import markdown_table
+
+    m = {"psnr": 23.236, "ssim": 0.75049, "lpips_alex": 0.1234, "lpips_vgg": 0.2101}
+    m |= {"train_seconds": 440.4, "render_ms_median": 137.6}
+    merge2 = {"psnr": 22.104, "ssim": 0.7, "lpips_alex": 0.2, "render_ms_median": 80.2}
+    lines = markdown_table({"scenes": [{"scene": "fern", **m, "merge2": merge2}], "mean": m}).splitlines()
+    assert lines[0].startswith("| scene | PSNR | SSIM | LPIPS-alex | LPIPS-vgg | train s | render ms | merged x2")
+    assert lines[1] == "|---|---|---|---|---|---|---|---|"
+    assert lines[2] == "| fern | 23.24 | 0.750 | 0.123 | 0.210 | 440 | 138 | 22.10 / 0.700 / 0.200 / 80 |"
+    assert lines[3] == "| **mean** | 23.24 | 0.750 | 0.123 | 0.210 | 440 | 138 |  |"

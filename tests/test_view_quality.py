@@ -463,7 +463,7 @@ def test_planes_fit_the_scene_whatever_the_near_bound():
     camera gives), the planes still span the scene's true depths and not much more, and a short
     training renders the test views within 0.3 dB of the run with the tight bound. Without the fit
     far fewer planes lie where the scene is (at this size the views lose 0.15 dB; on real scenes with
-    loose bounds 0.9-1.8 dB: bench/SCENES.md)."""
+    loose bounds 0.9-1.8 dB: bench/RESULTS.md)."""
     from cmc.method.model import CMCModel
 
     W2, H2 = 84, 63

@@ -301,37 +301,41 @@ def run_synthetic_bench(
     }
 
 
+def _markdown(columns: list[str], rows: list[list[str]]) -> str:
+    """A markdown table of string cells."""
+    head = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns) + "\n"
+    return head + "".join("| " + " | ".join(row) + " |\n" for row in rows)
+
+
+def _numbers(m: dict[str, Any], keys: tuple[str, ...]) -> list[str]:
+    """Cells of metrics ``keys`` of ``m``: PSNR with 2 decimals, seconds and milliseconds with none,
+    the rest with 3."""
+    digits = {"psnr": 2, "train_seconds": 0, "render_ms_median": 0}
+    return [f"{m[k]:.{digits.get(k, 3)}f}" for k in keys]
+
+
 def synthetic_markdown_table(report: dict[str, Any]) -> str:
     """One row per scene and kind of test view, then the means."""
-    head = (
-        "| scene | views | PSNR | SSIM | LPIPS-alex | LPIPS-vgg | depth rel. error | train s | render ms |\n"
-        "|---|---|---|---|---|---|---|---|---|\n"
-    )
-    row = "| {} | {} | {:.2f} | {:.3f} | {:.3f} | {:.3f} | {:.3f} | {:.0f} | {:.0f} |\n"
+    columns = ["scene", "views", "PSNR", "SSIM", "LPIPS-alex", "LPIPS-vgg", "depth rel. error", "train s", "render ms"]
     rows = []
     for r in [*report["scenes"], {"scene": "**mean**", **report["mean"]}]:
         for kind in SYNTHETIC_KINDS:
-            m = r[kind]
-            cols = (*(m[k] for k in (*METRICS, "depth_rel_error")), r["train_seconds"], r["render_ms_median"])
-            rows.append(row.format(r["scene"], kind, *cols))
-    return head + "".join(rows)
+            cells = _numbers(r[kind], (*METRICS, "depth_rel_error"))
+            rows.append([r["scene"], kind, *cells, *_numbers(r, ("train_seconds", "render_ms_median"))])
+    return _markdown(columns, rows)
 
 
 def markdown_table(report: dict[str, Any]) -> str:
     """The report as a markdown table (one row per scene, then the mean)."""
-    head = (
-        "| scene | PSNR | SSIM | LPIPS-alex | LPIPS-vgg | train s | render ms "
-        "| merged x2: PSNR / SSIM / LPIPS-alex / render ms |\n|---|---|---|---|---|---|---|---|\n"
-    )
-    row = "| {} | {:.2f} | {:.3f} | {:.3f} | {:.3f} | {:.0f} | {:.0f} | {} |\n"
+    columns = ["scene", "PSNR", "SSIM", "LPIPS-alex", "LPIPS-vgg", "train s", "render ms"]
+    columns.append("merged x2: PSNR / SSIM / LPIPS-alex / render ms")
+    keys = (*METRICS, "train_seconds", "render_ms_median")
     rows = []
     for r in report["scenes"]:
-        m2 = r["merge2"]
-        merged = f"{m2['psnr']:.2f} / {m2['ssim']:.3f} / {m2['lpips_alex']:.3f} / {m2['render_ms_median']:.0f}"
-        rows.append(row.format(r["scene"], *(r[k] for k in (*METRICS, "train_seconds", "render_ms_median")), merged))
-    m = report["mean"]
-    rows.append(row.format("**mean**", *(m[k] for k in (*METRICS, "train_seconds", "render_ms_median")), ""))
-    return head + "".join(rows)
+        merged = " / ".join(_numbers(r["merge2"], ("psnr", "ssim", "lpips_alex", "render_ms_median")))
+        rows.append([r["scene"], *_numbers(r, keys), merged])
+    rows.append(["**mean**", *_numbers(report["mean"], keys), ""])
+    return _markdown(columns, rows)
 
 
 def write_report(report: dict[str, Any], out: Path) -> None:

@@ -41,9 +41,9 @@ multiply-adds may fuse (``fastmath={"contract"}``, nothing else). Work it skips,
 * **opaque rays**: a ray leaves its block's live rays once its transmittance is below
   ``min_transmittance`` (default 1e-4); what is left changes a pixel by less than that.
 
-What it cannot skip, on fern (bench/reports/history/RESULTS-until-2026-11-27.md): a render takes about 4.5 million bilinear
-samples with alpha (3 MPIs x 190,000 pixels x 8), each four texel loads and about a hundred
-instructions.
+What it cannot skip, on fern (bench/reports/history/RESULTS-until-2026-11-27.md): a render takes
+about 4.5 million bilinear samples with alpha (3 MPIs x 190,000 pixels x 8), each four texel
+loads and about a hundred instructions.
 
 Threads: :func:`render` splits the rows into bands of ``ROWS`` over ``threads`` threads (the
 kernel releases the GIL); renders on several threads at once are safe.
