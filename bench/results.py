@@ -22,8 +22,8 @@ REPORTS = HERE / "reports"
 
 # The current report of each kind (in reports/current).
 SCENE_REPORTS = {s: f"scenes_{s}_test_sgm2_steps300.json" for s in ("fern", "room", "trex")}
-VAL_REPORTS = {s: f"preset_val_{s}.json" for s in ("fern", "room", "trex")}
-SYNTHETIC_REPORT = "view_quality_synthetic_sgm2_steps300.json"
+VAL_REPORTS = {s: f"viewcost_val_{s}.json" for s in ("fern", "room", "trex")}
+SYNTHETIC_REPORT = "viewcost_synthetic.json"
 POSE_REPORTS = {
     "fern": "poses_e2e_fern_wide.json",
     "room": "poses_e2e_room_wide.json",
@@ -33,7 +33,7 @@ POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 PROFILE_REPORT = "profile_job_fern_cpu.json"
 PREVIEW_REPORT = "preview_quality_fern_half.json"
 TIMELINE_REPORT = "job_timeline_fern_cpu.json"
-BUILD_REPORT = "model_build_time_fern.json"
+BUILD_REPORT = "model_build_time_fern_view_cost.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
 SERVICE_REPORT = "service_cpu.json"
 DEPLOYMENT_REPORT = "deployment_test.json"
@@ -215,10 +215,12 @@ def speed() -> list[str]:
         med = b["median_s"]
         out += [
             "",
-            "The model build alone, the sweep's torch ops against its compiled kernels (`cmc/method/sweep_kernel.py`),",
+            "The model build alone (target <= 10 s), the sweep's torch ops, its compiled kernels"
+            f"{' and commit ' + b['command'].split('--before ')[1].split()[0] if 'before' in med else ''}",
             f"alternating, {len(b['seconds']['torch'])} runs each (`{b['command']}`, {source(b, BUILD_REPORT)}):",
-            f"median {med['torch']:.1f} s -> {med['compiled']:.1f} s ({med['torch'] / med['compiled']:.1f}x),",
-            f"the same model to the bit: {'yes' if b['same_model_to_the_bit'] else 'NO'}.",
+            "median " + ", ".join(f"{k} {v:.1f} s" for k, v in med.items()) + "; the compiled build's parameters",
+            f"within {b['largest_parameter_difference']:.1f} of the torch build's (logits of near-tied texels:",
+            '`PROFILE.md`; the views are the same, table "Speed changes" below).',
             "Compare it with the table above only where both name the same machine and commit.",
         ]
     p = load(PREVIEW_REPORT)

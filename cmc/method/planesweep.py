@@ -42,32 +42,59 @@ def _view_cost(
     fr: Any,
     other: Any,
     image: torch.Tensor,
-    ref_rgb: torch.Tensor,
     ref_grid: torch.Tensor,
-    p: torch.Tensor,
+    uv_ref: torch.Tensor,
     aggregate: Callable[[torch.Tensor], torch.Tensor],
     cost: str,
+    compiled: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The window-averaged matching cost [D, h, w] of the reference MPI ``fr``'s planes against
     one other view (``other``'s frame, its photo ``image`` [3, H, W]), and where that view sees
-    them ([D, h, w] bool). ``ref_rgb`` [T, 3] and ``ref_grid`` [3, h, w]: the reference colour
-    at the texels, whose homogeneous reference pixels are ``p`` [T, 3]."""
-    D, (height, width) = fr.depths.shape[0], ref_grid.shape[1:]
+    them ([D, h, w] bool). ``ref_grid`` [3, h, w]: the reference colour at the texels, whose
+    reference pixels are ``uv_ref`` [h * w, 2]. On the CPU a compiled kernel computes the
+    per-texel cost (:func:`cmc.method.sweep_kernel.view_cost`) unless ``compiled`` is False;
+    elsewhere :func:`view_cost_torch`, its twin."""
     # Homographies taking view-j pixels to reference pixels for the reference planes; invert.
     H_ref_from_j = homographies_ref_from_tgt(fr.K, fr.ref_from_world, other.K, other.world_from_ref, fr.depths)
-    q = torch.einsum("dij,tj->dti", torch.linalg.inv(H_ref_from_j), p)
+    H_j_from_ref = torch.linalg.inv(H_ref_from_j)
+    census_radius = CENSUS_RADIUS if cost == "ad_census" else None
+    if compiled and image.device.type == "cpu" and image.dtype == torch.float32:
+        from cmc.method import sweep_kernel
+
+        uv = uv_ref.reshape(*ref_grid.shape[1:], 2)
+        diff, inside = sweep_kernel.view_cost(H_j_from_ref, image, ref_grid, uv, census_radius, AD_SCALE, CENSUS_SCALE)
+    else:
+        diff, inside = view_cost_torch(H_j_from_ref, image, ref_grid, uv_ref, census_radius)
+    # Window-averaged cost over the texels this view sees (sum of costs / weight seen).
+    frac = aggregate(inside.float())
+    return aggregate(diff) / frac.clamp_min(1e-6), frac > 0
+
+
+def view_cost_torch(
+    H_j_from_ref: torch.Tensor,
+    image: torch.Tensor,
+    ref_grid: torch.Tensor,
+    uv_ref: torch.Tensor,
+    census_radius: int | None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The per-texel cost [D, h, w] of the planes whose homographies ``H_j_from_ref`` [D, 3, 3]
+    take reference pixels to pixels of the photo ``image`` [3, H, W], and whether that view sees
+    them ([D, h, w] bool): the mean absolute colour difference to ``ref_grid`` [3, h, w] at the
+    texels' reference pixels ``uv_ref`` [h * w, 2]; with ``census_radius`` the AD-Census cost
+    (:func:`plane_sweep_weights`); 0 where the view does not see the texel. Any device."""
+    D, (height, width) = H_j_from_ref.shape[0], ref_grid.shape[1:]
+    p = torch.cat([uv_ref, torch.ones_like(uv_ref[:, :1])], -1)
+    q = torch.einsum("dij,tj->dti", H_j_from_ref, p)
     uv_j = q[..., :2] / q[..., 2:3].clamp_min(1e-6)
     rgb_j, inside = sample_image(image, uv_j)  # [D, T, 3]
-    inside = (inside & (q[..., 2] > 0)).float().reshape(D, 1, height, width)
-    diff = (rgb_j - ref_rgb).abs().mean(-1).reshape(D, 1, height, width)
-    if cost == "ad_census":
+    inside = (inside & (q[..., 2] > 0)).reshape(D, height, width)
+    ref_rgb = ref_grid.reshape(3, -1).T
+    diff = (rgb_j - ref_rgb).abs().mean(-1).reshape(D, height, width)
+    if census_radius is not None:
         warped = rgb_j.reshape(D, height, width, 3).permute(0, 3, 1, 2)
-        census = census_distance(ref_grid, warped)
-        diff = (1 - torch.exp(-diff / AD_SCALE)) + (1 - torch.exp(-census[:, None] / CENSUS_SCALE))
-    diff = diff * inside
-    # Window-averaged cost over the texels this view sees (sum of costs / weight seen).
-    frac = aggregate(inside[:, 0])
-    return aggregate(diff[:, 0]) / frac.clamp_min(1e-6), frac > 0
+        census = census_distance(ref_grid, warped, census_radius)
+        diff = (1 - torch.exp(-diff / AD_SCALE)) + (1 - torch.exp(-census / CENSUS_SCALE))
+    return diff * inside, inside
 
 
 def _combined_cost(cost: torch.Tensor, seen: torch.Tensor, occlusion_aware: bool, kind: str) -> torch.Tensor:
@@ -143,12 +170,11 @@ def plane_sweep_weights(
     if cfg.cost not in ("ad", "ad_census"):
         raise ValueError(f"unknown plane-sweep cost {cfg.cost!r}; choose 'ad' or 'ad_census'")
     ref_grid = ref_rgb.T.reshape(3, height, width)
-    p = torch.cat([uv_ref, torch.ones_like(uv_ref[:, :1])], -1)
     aggregate = _window_mean(ref_grid, cfg.window, cfg.edge_sigma or None)
     costs, seen = [], []
     for j, other in enumerate(frames):
         if j != ref:
-            view_cost, view_seen = _view_cost(fr, other, images[j], ref_rgb, ref_grid, p, aggregate, cfg.cost)
+            view_cost, view_seen = _view_cost(fr, other, images[j], ref_grid, uv_ref, aggregate, cfg.cost)
             costs.append(view_cost)
             seen.append(view_seen)
     c = _combined_cost(torch.stack(costs), torch.stack(seen), cfg.occlusion_aware, cfg.cost)
