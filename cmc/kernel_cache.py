@@ -1,6 +1,7 @@
-"""What every compiled numba kernel (:mod:`cmc.mpi.plane_sampling`, :mod:`cmc.serving.texture_kernel`,
-:mod:`cmc.method.sweep_kernel`) shares: a writable on-disk cache, found before the first kernel is
-defined, and the threading of parallel kernels (:data:`PARALLEL_LAUNCH`).
+"""What every compiled numba kernel (:mod:`cmc.mpi.plane_sampling`, :mod:`cmc.mpi.composite_kernel`,
+:mod:`cmc.serving.texture_kernel`, :mod:`cmc.method.sweep_kernel`) shares: a writable on-disk
+cache, found before the first kernel is defined, and the threading of parallel kernels
+(:data:`PARALLEL_LAUNCH`).
 
 numba looks for a writable cache folder the moment a ``cache=True`` kernel is defined (at import)
 and raises ``RuntimeError: cannot cache function ...`` when it finds none. It tries
@@ -10,8 +11,8 @@ user's environment, a container's read-only root filesystem, a read-only ``$HOME
 them; :func:`prepare` then points numba at a folder of this user's in the temporary directory.
 
 Kernels compiled in advance: ``CMC_KERNEL_CACHE_SEED`` names a cache folder made by
-:func:`cmc.serving.texture_kernel.warm_up`, :func:`cmc.mpi.plane_sampling.warm_up` and
-:func:`cmc.method.sweep_kernel.warm_up` run with
+:func:`cmc.serving.texture_kernel.warm_up`, :func:`cmc.mpi.plane_sampling.warm_up`,
+:func:`cmc.mpi.composite_kernel.warm_up` and :func:`cmc.method.sweep_kernel.warm_up` run with
 ``NUMBA_CACHE_DIR`` pointing at it (the Docker images do this at build time). It may be read-only:
 :func:`prepare` copies its files into the cache folder in use, where they are missing, so a fresh
 process loads the kernels instead of compiling them (about 7 s on 2 cores). numba keys each entry

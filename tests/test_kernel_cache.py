@@ -22,7 +22,12 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 INSTALL_SCRIPT = ROOT / "docker" / "install-service.sh"
-KERNEL_MODULES = ("cmc.mpi.plane_sampling", "cmc.serving.texture_kernel", "cmc.method.sweep_kernel")
+KERNEL_MODULES = (
+    "cmc.mpi.plane_sampling",
+    "cmc.serving.texture_kernel",
+    "cmc.method.sweep_kernel",
+    "cmc.mpi.composite_kernel",
+)
 NOBODY = 65534
 
 

@@ -30,6 +30,7 @@ from cmc.geometry.planes import (
     pixel_centers,
     plane_depths,
 )
+from cmc.mpi import composite_kernel
 from cmc.mpi.fields import MPIField, TextureField, sample_colour_bicubic
 
 
@@ -121,7 +122,16 @@ def composite(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> Ra
     """Front-to-back alpha compositing (paper Eq. 3.4, 3.5).
 
     Shape: rgb [R, D, 3], alpha [R, D], depth [R, D] (per-sample depth), nearest plane first.
+    On the CPU a compiled kernel (:mod:`cmc.mpi.composite_kernel`) computes it; elsewhere (and
+    for depths with a gradient) :func:`composite_torch`, its twin.
     """
+    if composite_kernel.supported(rgb, alpha, depth):
+        return RayOutput(*composite_kernel.composite(rgb, alpha, depth))
+    return composite_torch(rgb, alpha, depth)
+
+
+def composite_torch(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> RayOutput:
+    """:func:`composite` as torch ops (any device)."""
     trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], dim=1), dim=1)
     w = alpha * trans
     return RayOutput((w[..., None] * rgb).sum(1), (w * depth).sum(1), w.sum(1), w)

@@ -1,0 +1,132 @@
+"""Compiled CPU front-to-back compositing, with its backward pass: one walk along each ray
+instead of torch's cumulative product, products and sums over [R, D] and [R, D, 3] tensors and
+their backward passes (about 4x less time on a training step's rays, ``bench/PROFILE.md``).
+
+:func:`composite` computes what :func:`cmc.mpi.rendering.composite_torch` does (paper Eq. 3.4,
+3.5: the composited colour, depth, accumulated alpha and each plane's weight), in float32 in
+another order of operations: the same values up to rounding (``tests/test_composite_kernel.py``).
+The backward pass needs no division by ``1 - alpha`` (an opaque plane mid-ray is exact): with
+``G_k`` the gradient reaching plane k's weight (directly, and through the colour, depth and
+accumulated alpha), the gradient of alpha_k is ``T_k (G_k - U_{k+1})``, where ``T_k`` is the
+transmittance before plane k and ``U_k = G_k alpha_k + (1 - alpha_k) U_{k+1}`` is the
+back-to-front composite of the G's behind it. Rays are split over threads; each ray's sums run
+in one thread, so the result does not depend on the thread count.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+
+from cmc import kernel_cache
+
+kernel_cache.prepare()
+_JIT = dict(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+
+
+@numba.njit(parallel=True, **_JIT)
+def _forward(rgb, alpha, depth, out_rgb, out_depth, out_acc, weights):  # pragma: no cover - compiled
+    R, D = alpha.shape
+    for r in numba.prange(R):
+        trans = np.float32(1)
+        c0 = c1 = c2 = z = np.float32(0)
+        for k in range(D):
+            w = alpha[r, k] * trans
+            weights[r, k] = w
+            c0 += w * rgb[r, k, 0]
+            c1 += w * rgb[r, k, 1]
+            c2 += w * rgb[r, k, 2]
+            z += w * depth[r, k]
+            trans *= np.float32(1) - alpha[r, k]
+        out_rgb[r, 0], out_rgb[r, 1], out_rgb[r, 2] = c0, c1, c2
+        out_depth[r] = z
+        out_acc[r] = np.float32(1) - trans
+
+
+@numba.njit(parallel=True, **_JIT)
+def _backward(rgb, alpha, depth, weights, g_rgb, g_depth, g_acc, g_w, d_rgb, d_alpha):  # pragma: no cover - compiled
+    R, D = alpha.shape
+    for r in numba.prange(R):
+        a0, a1, a2, gz, ga = g_rgb[r, 0], g_rgb[r, 1], g_rgb[r, 2], g_depth[r], g_acc[r]
+        u = np.float32(0)  # U_{k+1}
+        for k in range(D - 1, -1, -1):
+            w = weights[r, k]
+            g = g_w[r, k] + a0 * rgb[r, k, 0] + a1 * rgb[r, k, 1] + a2 * rgb[r, k, 2] + gz * depth[r, k] + ga
+            d_rgb[r, k, 0], d_rgb[r, k, 1], d_rgb[r, k, 2] = w * a0, w * a1, w * a2
+            d_alpha[r, k] = g - u
+            u = g * alpha[r, k] + (np.float32(1) - alpha[r, k]) * u
+        trans = np.float32(1)
+        for k in range(D):
+            d_alpha[r, k] *= trans
+            trans *= np.float32(1) - alpha[r, k]
+
+
+def _array(t: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
+    """The gradient ``t`` as an array, zeros where autograd passed none."""
+    return np.zeros(shape, np.float32) if t is None else t.detach().numpy()
+
+
+class _Composite(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor):  # type: ignore[override]
+        R, D = alpha.shape
+        out_rgb, out_depth, out_acc, weights = torch.empty(R, 3), torch.empty(R), torch.empty(R), torch.empty(R, D)
+        with kernel_cache.PARALLEL_LAUNCH:
+            _forward(
+                rgb.detach().numpy(),
+                alpha.detach().numpy(),
+                depth.numpy(),
+                out_rgb.numpy(),
+                out_depth.numpy(),
+                out_acc.numpy(),
+                weights.numpy(),
+            )
+        ctx.save_for_backward(rgb, alpha, depth, weights)
+        ctx.set_materialize_grads(False)
+        return out_rgb, out_depth, out_acc, weights
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_depth, g_acc, g_w):  # type: ignore[override]
+        rgb, alpha, depth, weights = ctx.saved_tensors
+        R, D = alpha.shape
+        d_rgb, d_alpha = torch.empty(R, D, 3), torch.empty(R, D)
+        with kernel_cache.PARALLEL_LAUNCH:
+            _backward(
+                rgb.detach().numpy(),
+                alpha.detach().numpy(),
+                depth.numpy(),
+                weights.numpy(),
+                _array(g_rgb, (R, 3)),
+                _array(g_depth, (R,)),
+                _array(g_acc, (R,)),
+                _array(g_w, (R, D)),
+                d_rgb.numpy(),
+                d_alpha.numpy(),
+            )
+        return d_rgb, d_alpha, None
+
+
+def supported(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> bool:
+    """Whether :func:`composite` can take these: float32 CPU tensors, no gradient to the depths."""
+    tensors = (rgb, alpha, depth)
+    return not depth.requires_grad and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
+
+
+def composite(
+    rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Front-to-back compositing of rgb [R, D, 3], alpha [R, D] and per-sample depth [R, D],
+    nearest plane first -> colour [R, 3], depth [R], accumulated alpha [R] and the planes'
+    weights [R, D]; differentiable in rgb and alpha. Only where :func:`supported`."""
+    if not supported(rgb, alpha, depth):
+        raise ValueError("the compiled composite takes float32 CPU tensors and depths without gradient")
+    return _Composite.apply(rgb, alpha, depth)
+
+
+def warm_up() -> None:
+    """Compile the kernels now into numba's on-disk cache (:mod:`cmc.kernel_cache`), so the first
+    training step of a fresh process does not pay the compile; the Dockerfiles call it."""
+    rgb, alpha = torch.rand(2, 3, 3, requires_grad=True), torch.rand(2, 3, requires_grad=True)
+    out = composite(rgb, alpha, torch.rand(2, 3))
+    sum(o.sum() for o in out).backward()

@@ -1,0 +1,73 @@
+"""The compiled CPU compositing against its torch twin, values and gradients."""
+
+import numba
+import pytest
+import torch
+
+from cmc.mpi import composite_kernel
+from cmc.mpi.rendering import composite, composite_torch
+
+
+def _rays(seed: int, R: int = 400, D: int = 9) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """rgb [R, D, 3] (a strided view, as a field returns it), alpha [R, D] with an opaque back
+    plane, opaque planes mid-ray and rays with no alpha in front, depth [R, D]."""
+    gen = torch.Generator().manual_seed(seed)
+    rgb = torch.rand(3, R, D, generator=gen).permute(1, 2, 0)
+    alpha = torch.rand(R, D, generator=gen)
+    alpha[:, -1] = 1
+    alpha[:20, 3] = 1
+    alpha[20:40, :-1] = 0
+    return rgb, alpha, torch.rand(R, D, generator=gen) * 5
+
+
+@pytest.mark.parametrize("outputs", ["all", "colour only"])
+def test_the_compiled_composite_is_its_torch_twin(outputs):
+    """The same colour, depth, coverage and weights, and the same gradients of rgb and alpha
+    (from all four outputs, or from the colour alone: autograd then passes no gradient for the
+    others), up to float rounding."""
+    rgb0, alpha0, depth = _rays(0)
+    gen = torch.Generator().manual_seed(1)
+    grads = [torch.randn(400, 3, generator=gen), torch.randn(400, generator=gen)]
+    grads += [torch.randn(400, generator=gen), torch.randn(400, 9, generator=gen)]
+    results = []
+    for fn in (composite_kernel.composite, composite_torch):
+        rgb, alpha = rgb0.clone().requires_grad_(), alpha0.clone().requires_grad_()
+        out = fn(rgb, alpha, depth)
+        out = (out.rgb, out.depth, out.acc, out.weights) if fn is composite_torch else out
+        used = out if outputs == "all" else out[:1]
+        sum((o * g).sum() for o, g in zip(used, grads, strict=False)).backward()
+        results.append([*(o.detach() for o in out), rgb.grad, alpha.grad])
+    for mine, theirs in zip(*results, strict=True):
+        torch.testing.assert_close(mine, theirs, rtol=0, atol=2e-6)
+    assert results[0][5].abs().sum() > 0 and results[0][4].abs().sum() > 0
+    torch.testing.assert_close(results[0][2][20:40], torch.ones(20))  # the opaque back plane
+
+
+def test_composite_takes_the_compiled_path_on_the_cpu_and_torch_where_it_cannot(monkeypatch):
+    """rendering.composite: float32 CPU tensors to the kernel; float64, or depths with a
+    gradient, to the torch ops."""
+    calls = []
+    kernel = composite_kernel.composite
+    monkeypatch.setattr(composite_kernel, "composite", lambda *a: calls.append(a[0].dtype) or kernel(*a))
+    rgb, alpha, depth = _rays(2)
+    out = composite(rgb, alpha, depth)
+    torch.testing.assert_close(out.rgb, composite_torch(rgb, alpha, depth).rgb, rtol=0, atol=2e-6)
+    composite(rgb.double(), alpha.double(), depth.double())
+    composite(rgb, alpha, depth.clone().requires_grad_())
+    assert calls == [torch.float32]
+
+
+def test_the_compiled_composite_does_not_depend_on_the_thread_count():
+    rgb, alpha, depth = _rays(3)
+    threads = numba.get_num_threads()
+    outs = []
+    try:
+        for n in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+            numba.set_num_threads(n)
+            a = alpha.clone().requires_grad_()
+            out = composite_kernel.composite(rgb, a, depth)
+            (out[0].square().sum() + out[3].sum()).backward()
+            outs.append((out[0], a.grad))
+    finally:
+        numba.set_num_threads(threads)
+    assert torch.equal(outs[0][0], outs[1][0]) and torch.equal(outs[0][1], outs[1][1])
