@@ -11,7 +11,9 @@ fern spent about half its time there (bench/reports/history/RESULTS-until-2026-1
 Plane k of the samples reads texture ``plane_texture[k]`` of each tensor (the identity for the
 per-plane levels, the plane's group for the shared base colours). Work is split over threads by
 whole textures, so no two threads write the same gradient texel: the result does not depend on
-the thread count. Sums differ from torch's in the last bits (another order of operations).
+the thread count. Sums differ from torch's in the last bits (another order of operations). One loop
+over planes and rays serves both interpolations; the per-sample gathers and scatters are inlined
+into it (numba's ``inline="always"``: called, they cost the loops about a fifth more time).
 
 Threads come from numba's OpenMP layer, which is not fork-safe: a process that has trained must
 not fork a child that trains (numba terminates such a child). Celery's prefork parent never
@@ -64,51 +66,43 @@ def _taps(gx, gy, H, W):
     )  # fmt: skip
 
 
-@numba.njit(**_JIT)
-def _forward(tex, grid, plane_texture, out, p0, p1):
-    """out[k, c, r] += bilinear sample of tex[plane_texture[k], c] at grid[k, r], for k in [p0, p1)."""
+@numba.njit(inline="always", **_JIT)
+def _gather_bilinear(tex, t, gx, gy, out, k, r):
+    """out[k, c, r] += bilinear sample of tex[t, c] at grid point (gx, gy), for every channel c."""
     C, H, W = tex.shape[1], tex.shape[2], tex.shape[3]
-    for k in range(p0, p1):
-        t = plane_texture[k]
-        for r in range(grid.shape[1]):
-            x0, y0, w00, w01, w10, w11, vx0, vx1, vy0, vy1 = _taps(grid[k, r, 0], grid[k, r, 1], H, W)
-            for c in range(C):
-                s = np.float32(0)
-                if vy0:
-                    if vx0:
-                        s += w00 * tex[t, c, y0, x0]
-                    if vx1:
-                        s += w01 * tex[t, c, y0, x0 + 1]
-                if vy1:
-                    if vx0:
-                        s += w10 * tex[t, c, y0 + 1, x0]
-                    if vx1:
-                        s += w11 * tex[t, c, y0 + 1, x0 + 1]
-                out[k, c, r] += s
+    x0, y0, w00, w01, w10, w11, vx0, vx1, vy0, vy1 = _taps(gx, gy, H, W)
+    for c in range(C):
+        s = np.float32(0)
+        if vy0:
+            if vx0:
+                s += w00 * tex[t, c, y0, x0]
+            if vx1:
+                s += w01 * tex[t, c, y0, x0 + 1]
+        if vy1:
+            if vx0:
+                s += w10 * tex[t, c, y0 + 1, x0]
+            if vx1:
+                s += w11 * tex[t, c, y0 + 1, x0 + 1]
+        out[k, c, r] += s
 
 
-@numba.njit(**_JIT)
-def _backward(grad_out, grid, plane_texture, grad_tex, p0, p1):
-    """grad_tex[t] = the transpose of :func:`_forward` applied to grad_out[k], summed over the
-    planes k of texture t, for the textures of planes [p0, p1), which no other range holds."""
+@numba.njit(inline="always", **_JIT)
+def _scatter_bilinear(grad_out, t, gx, gy, grad_tex, k, r):
+    """The transpose of :func:`_gather_bilinear`: grad_tex[t] += its taps times grad_out[k, :, r]."""
     C, H, W = grad_tex.shape[1], grad_tex.shape[2], grad_tex.shape[3]
-    grad_tex[plane_texture[p0] : plane_texture[p1 - 1] + 1] = 0  # zeroed here: fresh pages in parallel
-    for k in range(p0, p1):
-        t = plane_texture[k]
-        for r in range(grid.shape[1]):
-            x0, y0, w00, w01, w10, w11, vx0, vx1, vy0, vy1 = _taps(grid[k, r, 0], grid[k, r, 1], H, W)
-            for c in range(C):
-                g = grad_out[k, c, r]
-                if vy0:
-                    if vx0:
-                        grad_tex[t, c, y0, x0] += w00 * g
-                    if vx1:
-                        grad_tex[t, c, y0, x0 + 1] += w01 * g
-                if vy1:
-                    if vx0:
-                        grad_tex[t, c, y0 + 1, x0] += w10 * g
-                    if vx1:
-                        grad_tex[t, c, y0 + 1, x0 + 1] += w11 * g
+    x0, y0, w00, w01, w10, w11, vx0, vx1, vy0, vy1 = _taps(gx, gy, H, W)
+    for c in range(C):
+        g = grad_out[k, c, r]
+        if vy0:
+            if vx0:
+                grad_tex[t, c, y0, x0] += w00 * g
+            if vx1:
+                grad_tex[t, c, y0, x0 + 1] += w01 * g
+        if vy1:
+            if vx0:
+                grad_tex[t, c, y0 + 1, x0] += w10 * g
+            if vx1:
+                grad_tex[t, c, y0 + 1, x0 + 1] += w11 * g
 
 
 INTERPOLATIONS = ("bilinear", "bicubic")  # the sampling kernels here, by grid_sample's names
@@ -144,67 +138,81 @@ def _cubic_axis(g, n):
     return np.int64(f) - 1, cubic_weights(i - f)
 
 
-@numba.njit(**_JIT)
-def _forward_cubic(tex, grid, plane_texture, out, p0, p1):
-    """As :func:`_forward`, with bicubic taps (4 x 4 texels, zero outside)."""
+@numba.njit(inline="always", **_JIT)
+def _gather_cubic(tex, t, gx, gy, out, k, r):
+    """As :func:`_gather_bilinear`, with bicubic taps (4 x 4 texels, zero outside)."""
     C, H, W = tex.shape[1], tex.shape[2], tex.shape[3]
-    for k in range(p0, p1):
-        t = plane_texture[k]
-        for r in range(grid.shape[1]):
-            x0, wx = _cubic_axis(grid[k, r, 0], W)
-            y0, wy = _cubic_axis(grid[k, r, 1], H)
-            for c in range(C):
-                s = np.float32(0)
-                for a in range(4):
-                    y = y0 + a
-                    if 0 <= y < H:
-                        row = np.float32(0)
-                        for b in range(4):
-                            x = x0 + b
-                            if 0 <= x < W:
-                                row += wx[b] * tex[t, c, y, x]
-                        s += wy[a] * row
-                out[k, c, r] += s
+    x0, wx = _cubic_axis(gx, W)
+    y0, wy = _cubic_axis(gy, H)
+    for c in range(C):
+        s = np.float32(0)
+        for a in range(4):
+            y = y0 + a
+            if 0 <= y < H:
+                row = np.float32(0)
+                for b in range(4):
+                    x = x0 + b
+                    if 0 <= x < W:
+                        row += wx[b] * tex[t, c, y, x]
+                s += wy[a] * row
+        out[k, c, r] += s
+
+
+@numba.njit(inline="always", **_JIT)
+def _scatter_cubic(grad_out, t, gx, gy, grad_tex, k, r):
+    """The transpose of :func:`_gather_cubic`."""
+    C, H, W = grad_tex.shape[1], grad_tex.shape[2], grad_tex.shape[3]
+    x0, wx = _cubic_axis(gx, W)
+    y0, wy = _cubic_axis(gy, H)
+    for c in range(C):
+        g = grad_out[k, c, r]
+        for a in range(4):
+            y = y0 + a
+            if 0 <= y < H:
+                ga = wy[a] * g
+                for b in range(4):
+                    x = x0 + b
+                    if 0 <= x < W:
+                        grad_tex[t, c, y, x] += wx[b] * ga
 
 
 @numba.njit(**_JIT)
-def _backward_cubic(grad_out, grid, plane_texture, grad_tex, p0, p1):
-    """The transpose of :func:`_forward_cubic`, as :func:`_backward` is of :func:`_forward`."""
-    C, H, W = grad_tex.shape[1], grad_tex.shape[2], grad_tex.shape[3]
-    grad_tex[plane_texture[p0] : plane_texture[p1 - 1] + 1] = 0
+def _forward(tex, grid, plane_texture, out, p0, p1, cubic):
+    """out[k, c, r] += sample of tex[plane_texture[k], c] at grid[k, r] (bilinear, or bicubic
+    where ``cubic``), for k in [p0, p1)."""
     for k in range(p0, p1):
         t = plane_texture[k]
         for r in range(grid.shape[1]):
-            x0, wx = _cubic_axis(grid[k, r, 0], W)
-            y0, wy = _cubic_axis(grid[k, r, 1], H)
-            for c in range(C):
-                g = grad_out[k, c, r]
-                for a in range(4):
-                    y = y0 + a
-                    if 0 <= y < H:
-                        ga = wy[a] * g
-                        for b in range(4):
-                            x = x0 + b
-                            if 0 <= x < W:
-                                grad_tex[t, c, y, x] += wx[b] * ga
+            if cubic:
+                _gather_cubic(tex, t, grid[k, r, 0], grid[k, r, 1], out, k, r)
+            else:
+                _gather_bilinear(tex, t, grid[k, r, 0], grid[k, r, 1], out, k, r)
+
+
+@numba.njit(**_JIT)
+def _backward(grad_out, grid, plane_texture, grad_tex, p0, p1, cubic):
+    """grad_tex[t] = the transpose of :func:`_forward` applied to grad_out[k], summed over the
+    planes k of texture t, for the textures of planes [p0, p1), which no other range holds."""
+    grad_tex[plane_texture[p0] : plane_texture[p1 - 1] + 1] = 0  # zeroed here: fresh pages in parallel
+    for k in range(p0, p1):
+        t = plane_texture[k]
+        for r in range(grid.shape[1]):
+            if cubic:
+                _scatter_cubic(grad_out, t, grid[k, r, 0], grid[k, r, 1], grad_tex, k, r)
+            else:
+                _scatter_bilinear(grad_out, t, grid[k, r, 0], grid[k, r, 1], grad_tex, k, r)
 
 
 @numba.njit(parallel=True, **_JIT)
 def _forward_parallel(tex, grid, plane_texture, out, cuts, cubic):
     for i in numba.prange(len(cuts) - 1):
-        if cubic:
-            _forward_cubic(tex, grid, plane_texture, out, cuts[i], cuts[i + 1])
-        else:
-            _forward(tex, grid, plane_texture, out, cuts[i], cuts[i + 1])
+        _forward(tex, grid, plane_texture, out, cuts[i], cuts[i + 1], cubic)
 
 
 @numba.njit(parallel=True, **_JIT)
 def _backward_parallel(grad_out, grid, plane_texture, grad_tex, cuts, cubic):
     for i in numba.prange(len(cuts) - 1):
-        if cubic:
-            _backward_cubic(grad_out, grid, plane_texture, grad_tex, cuts[i], cuts[i + 1])
-        else:
-            _backward(grad_out, grid, plane_texture, grad_tex, cuts[i], cuts[i + 1])
+        _backward(grad_out, grid, plane_texture, grad_tex, cuts[i], cuts[i + 1], cubic)
 
 
 class _SamplePlanes(torch.autograd.Function):
