@@ -44,8 +44,8 @@ def test_the_compiled_composite_is_its_torch_twin(outputs):
 
 
 def test_composite_takes_the_compiled_path_on_the_cpu_and_torch_where_it_cannot(monkeypatch):
-    """rendering.composite: float32 CPU tensors to the kernel; float64, or depths with a
-    gradient, to the torch ops."""
+    """rendering.composite: float32 CPU RGB to the kernel; float64, other channel counts or
+    depths with a gradient to the torch ops."""
     calls = []
     kernel = composite_kernel.composite
     monkeypatch.setattr(composite_kernel, "composite", lambda *a: calls.append(a[0].dtype) or kernel(*a))
@@ -54,6 +54,8 @@ def test_composite_takes_the_compiled_path_on_the_cpu_and_torch_where_it_cannot(
     torch.testing.assert_close(out.rgb, composite_torch(rgb, alpha, depth).rgb, rtol=0, atol=2e-6)
     composite(rgb.double(), alpha.double(), depth.double())
     composite(rgb, alpha, depth.clone().requires_grad_())
+    five = composite(torch.rand(400, 9, 5), alpha, depth)
+    assert five.rgb.shape == (400, 5)
     assert calls == [torch.float32]
 
 

@@ -13,7 +13,7 @@ Stages that have not run yet are estimated from a reference run until they measu
 speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2-core CPU.
 
 * :data:`REFERENCE_POSES_S`: structure from motion, 12.7 s (median of 3, bench/reports/history/poses_fern.md).
-* :data:`REFERENCE_STEP_S`: a training step, 0.72 s in ``cmc serve`` (bench/reports/current/job_timeline_fern_cpu.json:
+* :data:`REFERENCE_STEP_S`: a training step, 0.72 s in ``cmc serve`` (bench/reports/history/job_timeline_fern_cpu.json:
   the train phase of a 300-step job took 159 s more than that of an 80-step one). A GPU trains
   much faster: until training has run a step, a job's estimate is pessimistic there.
 * The model build (the plane sweeps), in training steps (:func:`build_steps`), and baking
@@ -59,7 +59,7 @@ def bake_steps(width: int, height: int, margin: float, num_views: int, rays_per_
     Per plane of every MPI the bake evaluates the field once at each of ``margin^2 * W * H``
     texels and writes it; a step evaluates it at ``num_views * rays_per_view`` samples, forward and
     backward. Fern at 504x378, fast preset (4096 rays): about 15 steps (9-11 s in ``cmc serve``,
-    publishing included, bench/reports/current/job_timeline_fern_cpu.json).
+    publishing included, bench/reports/history/job_timeline_fern_cpu.json).
     """
     return margin**2 * width * height / (1.5 * num_views * rays_per_view)
 

@@ -108,9 +108,11 @@ class _Composite(torch.autograd.Function):
 
 
 def supported(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> bool:
-    """Whether :func:`composite` can take these: float32 CPU tensors, no gradient to the depths."""
+    """Whether :func:`composite` can take these: float32 CPU tensors, three colour channels, no
+    gradient to the depths."""
     tensors = (rgb, alpha, depth)
-    return not depth.requires_grad and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
+    cpu = all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
+    return cpu and rgb.shape[-1] == 3 and not depth.requires_grad
 
 
 def composite(
@@ -120,7 +122,7 @@ def composite(
     nearest plane first -> colour [R, 3], depth [R], accumulated alpha [R] and the planes'
     weights [R, D]; differentiable in rgb and alpha. Only where :func:`supported`."""
     if not supported(rgb, alpha, depth):
-        raise ValueError("the compiled composite takes float32 CPU tensors and depths without gradient")
+        raise ValueError("the compiled composite takes float32 CPU tensors, RGB, and depths without gradient")
     return _Composite.apply(rgb, alpha, depth)
 
 

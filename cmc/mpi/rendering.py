@@ -121,9 +121,10 @@ class RayOutput:
 def composite(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> RayOutput:
     """Front-to-back alpha compositing (paper Eq. 3.4, 3.5).
 
-    Shape: rgb [R, D, 3], alpha [R, D], depth [R, D] (per-sample depth), nearest plane first.
-    On the CPU a compiled kernel (:mod:`cmc.mpi.composite_kernel`) computes it; elsewhere (and
-    for depths with a gradient) :func:`composite_torch`, its twin.
+    Shape: rgb [R, D, 3] (any number of channels), alpha [R, D], depth [R, D] (per-sample depth),
+    nearest plane first. On the CPU a compiled kernel (:mod:`cmc.mpi.composite_kernel`) computes
+    it; elsewhere (and for depths with a gradient, or other than 3 channels)
+    :func:`composite_torch`, its twin.
     """
     if composite_kernel.supported(rgb, alpha, depth):
         return RayOutput(*composite_kernel.composite(rgb, alpha, depth))
