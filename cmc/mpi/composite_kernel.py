@@ -129,6 +129,8 @@ def composite(
 def warm_up() -> None:
     """Compile the kernels now into numba's on-disk cache (:mod:`cmc.kernel_cache`), so the first
     training step of a fresh process does not pay the compile; the Dockerfiles call it."""
-    rgb, alpha = torch.rand(2, 3, 3, requires_grad=True), torch.rand(2, 3, requires_grad=True)
-    out = composite(rgb, alpha, torch.rand(2, 3))
-    sum(o.sum() for o in out).backward()
+    alpha = torch.rand(2, 3, requires_grad=True)
+    # rgb contiguous and as a field returns it (a permuted view); gradients dense and broadcast.
+    for rgb in (torch.rand(2, 3, 3), torch.rand(3, 2, 3).permute(1, 2, 0)):
+        out = composite(rgb.requires_grad_(), alpha, torch.rand(2, 3))
+        sum(o.sum() + (o * torch.rand_like(o)).sum() for o in out).backward()
