@@ -4,14 +4,17 @@ The job: fern's three training views (``images_8``, RegNeRF split), ``fast`` pre
 timed in its own process, the two alternating, ``--rounds`` times; a process times ``--steps``
 steps of each loss phase (reconstruction only, from step 0; the full loss, from step 150) after
 two warm-up steps, and reports their medians. The plane-sweep start is off
-(``model.pyramid.init_from_sweep=false``): it only sets the initial alpha, and a step samples every
-plane of every ray whatever alpha holds, so the step's cost does not depend on it, and each
-process is spared the sweep's 45 s.
+(``model.pyramid.init_from_sweep=false``), which spares each process the sweep. Then every plane
+of every ray weighs alike, while a trained model's rays put their weight on a few planes, and
+the backward pass skips the colours of the faint ones (``TrainConfig.colour_grad_min_weight``):
+``--state`` starts both trees from the parameters of a trained model instead, written once by
+``--save-state`` (this tree, the preset with its sweep, ``--state-steps`` steps).
 
 Usage (from the repository root; writes the report and prints it)::
 
+    python bench/train_step.py --data ../shared/datasets/llff/fern --save-state /tmp/fern150.pt
     python bench/train_step.py --data ../shared/datasets/llff/fern --before 72b0bd5 \
-        --out bench/reports/current/train_step_cpu.json
+        --state /tmp/fern150.pt --out bench/reports/current/train_step_cpu.json
 """
 
 from __future__ import annotations
@@ -37,10 +40,12 @@ import json, statistics, sys, time, torch
 from cmc.config import preset_config, with_settings
 from cmc.data.datasets import load_llff
 from cmc.method.training import Trainer
-data, steps = sys.argv[1], int(sys.argv[2])
+data, steps, state = sys.argv[1], int(sys.argv[2]), sys.argv[3]
 torch.manual_seed(0)
 cfg = with_settings(preset_config("fast"), ["model.pyramid.init_from_sweep=false"])
 trainer = Trainer(load_llff(data).train, cfg)
+if state:
+    trainer.model.load_state_dict(torch.load(state))
 out = {}
 for phase, start in (("reconstruction_only", 0), ("full", 150)):
     trainer.step = start
@@ -59,10 +64,24 @@ def git(*args: str, cwd: Path = ROOT) -> str:
     return subprocess.run(["git", *args], cwd=cwd, check=True, capture_output=True, text=True).stdout.strip()
 
 
-def time_tree(tree: Path, data: str, steps: int) -> dict[str, float]:
+SAVE_STATE = r"""
+import sys, torch
+from cmc.config import preset_config
+from cmc.data.datasets import load_llff
+from cmc.method.training import Trainer
+data, steps, path = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+torch.manual_seed(0)
+trainer = Trainer(load_llff(data).train, preset_config("fast"))
+for _ in range(steps):
+    trainer.train_step()
+torch.save(trainer.model.state_dict(), path)
+"""
+
+
+def time_tree(tree: Path, data: str, steps: int, state: str) -> dict[str, float]:
     env = {**os.environ, "PYTHONPATH": str(tree)}
     done = subprocess.run(
-        [sys.executable, "-c", MEASURE, data, str(steps)], cwd=tree, env=env, capture_output=True, text=True
+        [sys.executable, "-c", MEASURE, data, str(steps), state], cwd=tree, env=env, capture_output=True, text=True
     )
     if done.returncode:
         raise SystemExit(f"timing {tree} failed:\n{done.stderr}")
@@ -72,11 +91,20 @@ def time_tree(tree: Path, data: str, steps: int) -> dict[str, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", required=True, help="the fern scene folder")
-    ap.add_argument("--before", required=True, help="the commit to compare with")
+    ap.add_argument("--before", help="the commit to compare with")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--steps", type=int, default=12, help="timed steps per phase and process")
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--state", default="", help="model parameters both trees start from (--save-state)")
+    ap.add_argument("--save-state", help="write a trained model's parameters here, and time nothing")
+    ap.add_argument("--state-steps", type=int, default=150, help="training steps of --save-state")
+    ap.add_argument("--out")
     args = ap.parse_args()
+    data = str(Path(args.data).resolve())
+    if args.save_state:
+        subprocess.run([sys.executable, "-c", SAVE_STATE, data, str(args.state_steps), args.save_state], check=True)
+        return
+    if not (args.before and args.out):
+        ap.error("--before and --out are needed to time")
     rounds: dict[str, list[dict[str, float]]] = {"before": [], "after": []}
     with tempfile.TemporaryDirectory() as tmp:
         before_tree = Path(tmp) / "before"
@@ -84,7 +112,9 @@ def main() -> None:
         try:
             for r in range(args.rounds):
                 for name, tree in (("before", before_tree), ("after", ROOT)):
-                    rounds[name].append(time_tree(tree, str(Path(args.data).resolve()), args.steps))
+                    rounds[name].append(
+                        time_tree(tree, data, args.steps, str(Path(args.state).resolve()) if args.state else "")
+                    )
                     print(f"round {r + 1}: {name} {rounds[name][-1]}", flush=True)
         finally:
             git("worktree", "remove", "--force", str(before_tree))
@@ -103,6 +133,7 @@ def main() -> None:
             "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
         },
         "steps_per_process": args.steps,
+        "start": args.state or "the preset without its sweep",
         "rounds": rounds,
         "median_step_s": summary,
     }

@@ -96,6 +96,9 @@ class TrainConfig:
     unseen_jitter: float = 0.1  # std of the unseen-pose centre jitter, in mean baselines
     lr: float = 0.05  # Adam learning rate at step 0 ...
     lr_final: float = 0.005  # ... decaying exponentially to this at the last step
+    # A plane sample weighing less than this in its ray's colour passes no gradient to its colour
+    # (cmc.mpi.rendering.composite): the backward pass skips those texels, most of a step's.
+    colour_grad_min_weight: float = 1e-3
     seed: int = 0
     checkpoint_every: int = 250  # steps between checkpoints (when a checkpoint path is given)
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -155,7 +158,8 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       the views do not depend on how loose the bounds are), each input
       photo's colour response learnt and renders shown in their mean
       (``model.exposure_compensation``: photos shot at different exposures do not bend the
-      geometry), 300 steps.
+      geometry), 300 steps, no colour gradient for a plane sample weighing under 1e-3 in its ray
+      (``colour_grad_min_weight``: the same views, a shorter backward pass).
     """
     if name == "paper":
         cfg = TrainConfig(
@@ -165,6 +169,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
             unseen_rays=1024,
             lr=5e-3,
             lr_final=1e-4,
+            colour_grad_min_weight=0.0,
             model=ModelConfig(
                 field_type="mlp",
                 num_planes=80,

@@ -20,11 +20,12 @@ def _rays(seed: int, R: int = 400, D: int = 9) -> tuple[torch.Tensor, torch.Tens
     return rgb, alpha, torch.rand(R, D, generator=gen) * 5
 
 
+@pytest.mark.parametrize("min_weight", [0.0, 0.05])
 @pytest.mark.parametrize("outputs", ["all", "colour only"])
-def test_the_compiled_composite_is_its_torch_twin(outputs):
+def test_the_compiled_composite_is_its_torch_twin(outputs, min_weight):
     """The same colour, depth, coverage and weights, and the same gradients of rgb and alpha
     (from all four outputs, or from the colour alone: autograd then passes no gradient for the
-    others), up to float rounding."""
+    others), up to float rounding; with a least weight for colour gradients, the same ones cut."""
     rgb0, alpha0, depth = _rays(0)
     gen = torch.Generator().manual_seed(1)
     grads = [torch.randn(400, 3, generator=gen), torch.randn(400, generator=gen)]
@@ -32,7 +33,7 @@ def test_the_compiled_composite_is_its_torch_twin(outputs):
     results = []
     for fn in (composite_kernel.composite, composite_torch):
         rgb, alpha = rgb0.clone().requires_grad_(), alpha0.clone().requires_grad_()
-        out = fn(rgb, alpha, depth)
+        out = fn(rgb, alpha, depth, min_weight)
         out = (out.rgb, out.depth, out.acc, out.weights) if fn is composite_torch else out
         used = out if outputs == "all" else out[:1]
         sum((o * g).sum() for o, g in zip(used, grads, strict=False)).backward()
@@ -41,6 +42,28 @@ def test_the_compiled_composite_is_its_torch_twin(outputs):
         torch.testing.assert_close(mine, theirs, rtol=0, atol=2e-6)
     assert results[0][5].abs().sum() > 0 and results[0][4].abs().sum() > 0
     torch.testing.assert_close(results[0][2][20:40], torch.ones(20))  # the opaque back plane
+    faint = results[0][3] < min_weight
+    assert torch.equal(results[0][4][faint], torch.zeros(int(faint.sum()), 3))
+    assert (results[0][4][results[0][3] >= max(min_weight, 1e-6)] != 0).all()
+    if min_weight > 0:
+        assert 0.2 < faint.float().mean() < 0.8  # the cut applies to a good share, not all
+
+
+def test_faint_samples_pass_no_colour_gradient_and_the_rest_the_same():
+    """composite with colour_grad_min_weight: the colour gradient of a sample weighing less is 0,
+    every other gradient (alpha, and the colour of the samples that weigh enough) is unchanged,
+    as are the values."""
+    rgb0, alpha0, depth = _rays(4)
+    runs = []
+    for w_min in (0.0, 0.05):
+        rgb, alpha = rgb0.clone().requires_grad_(), alpha0.clone().requires_grad_()
+        out = composite(rgb, alpha, depth, w_min)
+        (out.rgb.square().sum() + out.depth.sum()).backward()
+        runs.append((out.rgb.detach(), out.weights.detach(), rgb.grad, alpha.grad))
+    (rgb_a, w, g_all, a_all), (rgb_b, _, g_cut, a_cut) = runs
+    keep = w >= 0.05
+    assert torch.equal(rgb_a, rgb_b) and torch.equal(a_all, a_cut)
+    assert torch.equal(g_cut[keep], g_all[keep]) and not g_cut[~keep].any() and g_all[~keep].any()
 
 
 def test_composite_takes_the_compiled_path_on_the_cpu_and_torch_where_it_cannot(monkeypatch):

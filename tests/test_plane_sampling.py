@@ -15,14 +15,20 @@ def _grid_sample_sum(grid, plane_texture, textures, mode):
     return sum(F.grid_sample(t[index], grid[:, None], mode=mode, align_corners=False)[:, :, 0] for t in textures)
 
 
+@pytest.mark.parametrize("zeros", [False, True])
 @pytest.mark.parametrize("mode", ["bilinear", "bicubic"])
 @pytest.mark.parametrize("plane_texture", [[0, 1, 2, 3, 4], [0, 0, 0, 1, 1]])
-def test_sample_planes_matches_grid_sample_and_its_gradient(plane_texture, mode):
+def test_sample_planes_matches_grid_sample_and_its_gradient(plane_texture, mode, zeros):
+    """With ``zeros``, the gradient reaching the samples is exactly 0 at most samples and
+    channels (as for faint samples' colours, which the backward pass skips)."""
     gen = torch.Generator().manual_seed(0)
     textures = [torch.randn(max(plane_texture) + 1, 4, h, w, generator=gen) for h, w in ((9, 13), (4, 6))]
     # Points beyond the texture (|g| > 1) sample zero padding, as grid_sample's do.
     grid = torch.rand(len(plane_texture), 300, 2, generator=gen) * 3 - 1.5
     weights = torch.randn(len(plane_texture), 4, 300, generator=gen)
+    if zeros:
+        weights[torch.rand(weights.shape, generator=gen) < 0.7] = 0
+        weights[:, :, :100] = 0  # whole samples
     outs, grads = [], []
     for fn in (plane_sampling.sample_planes, _grid_sample_sum):
         leaves = [t.clone().requires_grad_() for t in textures]

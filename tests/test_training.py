@@ -179,3 +179,24 @@ def test_checkpoint_cadence_is_not_part_of_the_resume_check(scene, tmp_path):
     assert second.step == 3
     with pytest.raises(ValueError, match="different training configuration"):
         Trainer(scene, replace(cfg, lr=cfg.lr * 2)).load_checkpoint(ckpt)
+
+
+def test_faint_samples_pass_no_gradient_to_their_colours(scene):
+    """colour_grad_min_weight reaches the renders of a training step: with it above every
+    sample's weight, one step leaves every colour texel (base and levels' colour channels) as it
+    was and still moves alpha; at 0 the colours move too."""
+
+    def changed(cfg: TrainConfig) -> tuple[bool, bool]:
+        torch.manual_seed(0)
+        trainer = Trainer(scene, cfg)
+        field = trainer.model.fields[0]
+        before = [p.detach().clone() for p in (field.base, *field.levels)]
+        trainer.train_step()
+        colour = not torch.equal(field.base, before[0]) or any(
+            not torch.equal(lvl[:, :3], b[:, :3]) for lvl, b in zip(field.levels, before[1:], strict=True)
+        )
+        alpha = any(not torch.equal(lvl[:, 3], b[:, 3]) for lvl, b in zip(field.levels, before[1:], strict=True))
+        return colour, alpha
+
+    assert changed(tiny(colour_grad_min_weight=1.5)) == (False, True)
+    assert changed(tiny(colour_grad_min_weight=0.0)) == (True, True)

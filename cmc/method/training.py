@@ -192,7 +192,7 @@ class Trainer:
         # per_mpi[i][t]: MPI i's render of target t (one field query per MPI).
         unseen_grad = [1.0] * (len(groups) - len(self.scene))
         per_mpi = [
-            render_ray_groups(f, fr, groups, self._colour_grads(i) + unseen_grad)
+            render_ray_groups(f, fr, groups, self._colour_grads(i) + unseen_grad, cfg.colour_grad_min_weight)
             for i, (f, fr) in enumerate(zip(fields, frames, strict=True))
         ]
         by_target = list(zip(*per_mpi, strict=True))

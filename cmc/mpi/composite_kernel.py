@@ -45,15 +45,21 @@ def _forward(rgb, alpha, depth, out_rgb, out_depth, out_acc, weights):  # pragma
 
 
 @numba.njit(parallel=True, **_JIT)
-def _backward(rgb, alpha, depth, weights, g_rgb, g_depth, g_acc, g_w, d_rgb, d_alpha):  # pragma: no cover - compiled
+def _backward(
+    rgb, alpha, depth, weights, g_rgb, g_depth, g_acc, g_w, min_w, d_rgb, d_alpha
+):  # pragma: no cover - compiled
     R, D = alpha.shape
+    min_w = np.float32(min_w)
     for r in numba.prange(R):
         a0, a1, a2, gz, ga = g_rgb[r, 0], g_rgb[r, 1], g_rgb[r, 2], g_depth[r], g_acc[r]
         u = np.float32(0)  # U_{k+1}
         for k in range(D - 1, -1, -1):
             w = weights[r, k]
             g = g_w[r, k] + a0 * rgb[r, k, 0] + a1 * rgb[r, k, 1] + a2 * rgb[r, k, 2] + gz * depth[r, k] + ga
-            d_rgb[r, k, 0], d_rgb[r, k, 1], d_rgb[r, k, 2] = w * a0, w * a1, w * a2
+            if w >= min_w:
+                d_rgb[r, k, 0], d_rgb[r, k, 1], d_rgb[r, k, 2] = w * a0, w * a1, w * a2
+            else:
+                d_rgb[r, k, 0] = d_rgb[r, k, 1] = d_rgb[r, k, 2] = np.float32(0)
             d_alpha[r, k] = g - u
             u = g * alpha[r, k] + (np.float32(1) - alpha[r, k]) * u
         trans = np.float32(1)
@@ -69,7 +75,7 @@ def _array(t: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor):  # type: ignore[override]
+    def forward(ctx, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, min_w: float):  # type: ignore[override]
         R, D = alpha.shape
         out_rgb, out_depth, out_acc, weights = torch.empty(R, 3), torch.empty(R), torch.empty(R), torch.empty(R, D)
         with kernel_cache.PARALLEL_LAUNCH:
@@ -83,6 +89,7 @@ class _Composite(torch.autograd.Function):
                 weights.numpy(),
             )
         ctx.save_for_backward(rgb, alpha, depth, weights)
+        ctx.min_w = min_w
         ctx.set_materialize_grads(False)
         return out_rgb, out_depth, out_acc, weights
 
@@ -101,10 +108,11 @@ class _Composite(torch.autograd.Function):
                 _array(g_depth, (R,)),
                 _array(g_acc, (R,)),
                 _array(g_w, (R, D)),
+                ctx.min_w,
                 d_rgb.numpy(),
                 d_alpha.numpy(),
             )
-        return d_rgb, d_alpha, None
+        return d_rgb, d_alpha, None, None
 
 
 def supported(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> bool:
@@ -116,14 +124,15 @@ def supported(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> bo
 
 
 def composite(
-    rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor
+    rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, colour_grad_min_weight: float = 0.0
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Front-to-back compositing of rgb [R, D, 3], alpha [R, D] and per-sample depth [R, D],
     nearest plane first -> colour [R, 3], depth [R], accumulated alpha [R] and the planes'
-    weights [R, D]; differentiable in rgb and alpha. Only where :func:`supported`."""
+    weights [R, D]; differentiable in rgb and alpha, the gradient of a sample's colour exactly 0
+    where its weight is below ``colour_grad_min_weight``. Only where :func:`supported`."""
     if not supported(rgb, alpha, depth):
         raise ValueError("the compiled composite takes float32 CPU tensors, RGB, and depths without gradient")
-    return _Composite.apply(rgb, alpha, depth)
+    return _Composite.apply(rgb, alpha, depth, colour_grad_min_weight)
 
 
 def warm_up() -> None:
@@ -132,5 +141,5 @@ def warm_up() -> None:
     alpha = torch.rand(2, 3, requires_grad=True)
     # rgb contiguous and as a field returns it (a permuted view); gradients dense and broadcast.
     for rgb in (torch.rand(2, 3, 3), torch.rand(3, 2, 3).permute(1, 2, 0)):
-        out = composite(rgb.requires_grad_(), alpha, torch.rand(2, 3))
+        out = composite(rgb.requires_grad_(), alpha, torch.rand(2, 3), 0.5)
         sum(o.sum() + (o * torch.rand_like(o)).sum() for o in out).backward()

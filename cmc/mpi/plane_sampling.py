@@ -93,6 +93,8 @@ def _scatter_bilinear(grad_out, t, gx, gy, grad_tex, k, r):
     x0, y0, w00, w01, w10, w11, vx0, vx1, vy0, vy1 = _taps(gx, gy, H, W)
     for c in range(C):
         g = grad_out[k, c, r]
+        if g == 0:
+            continue
         if vy0:
             if vx0:
                 grad_tex[t, c, y0, x0] += w00 * g
@@ -166,6 +168,8 @@ def _scatter_cubic(grad_out, t, gx, gy, grad_tex, k, r):
     y0, wy = _cubic_axis(gy, H)
     for c in range(C):
         g = grad_out[k, c, r]
+        if g == 0:
+            continue
         for a in range(4):
             y = y0 + a
             if 0 <= y < H:
@@ -194,9 +198,15 @@ def _backward(grad_out, grid, plane_texture, grad_tex, p0, p1, cubic):
     """grad_tex[t] = the transpose of :func:`_forward` applied to grad_out[k], summed over the
     planes k of texture t, for the textures of planes [p0, p1), which no other range holds."""
     grad_tex[plane_texture[p0] : plane_texture[p1 - 1] + 1] = 0  # zeroed here: fresh pages in parallel
+    C = grad_out.shape[1]
     for k in range(p0, p1):
         t = plane_texture[k]
         for r in range(grid.shape[1]):
+            nonzero = False
+            for c in range(C):
+                nonzero = nonzero or grad_out[k, c, r] != 0
+            if not nonzero:  # e.g. the colours of a sample too faint to fit (cmc.mpi.rendering.composite)
+                continue
             if cubic:
                 _scatter_cubic(grad_out, t, grid[k, r, 0], grid[k, r, 1], grad_tex, k, r)
             else:

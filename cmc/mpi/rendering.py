@@ -118,23 +118,31 @@ class RayOutput:
     weights: torch.Tensor | None = None
 
 
-def composite(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> RayOutput:
+def composite(
+    rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, colour_grad_min_weight: float = 0.0
+) -> RayOutput:
     """Front-to-back alpha compositing (paper Eq. 3.4, 3.5).
 
     Shape: rgb [R, D, 3] (any number of channels), alpha [R, D], depth [R, D] (per-sample depth),
-    nearest plane first. On the CPU a compiled kernel (:mod:`cmc.mpi.composite_kernel`) computes
-    it; elsewhere (and for depths with a gradient, or other than 3 channels)
-    :func:`composite_torch`, its twin.
+    nearest plane first. A sample whose weight is below ``colour_grad_min_weight`` passes no
+    gradient to its colour (its share of the ray's colour is too small to fit, and the compiled
+    sampler skips the colour texels of such samples in the backward pass). On the CPU a compiled
+    kernel (:mod:`cmc.mpi.composite_kernel`) computes it; elsewhere (and for depths with a
+    gradient, or other than 3 channels) :func:`composite_torch`, its twin.
     """
     if composite_kernel.supported(rgb, alpha, depth):
-        return RayOutput(*composite_kernel.composite(rgb, alpha, depth))
-    return composite_torch(rgb, alpha, depth)
+        return RayOutput(*composite_kernel.composite(rgb, alpha, depth, colour_grad_min_weight))
+    return composite_torch(rgb, alpha, depth, colour_grad_min_weight)
 
 
-def composite_torch(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> RayOutput:
+def composite_torch(
+    rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, colour_grad_min_weight: float = 0.0
+) -> RayOutput:
     """:func:`composite` as torch ops (any device)."""
     trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], dim=1), dim=1)
     w = alpha * trans
+    if colour_grad_min_weight > 0 and rgb.requires_grad:
+        rgb = torch.where((w.detach() >= colour_grad_min_weight)[..., None], rgb, rgb.detach())
     return RayOutput((w[..., None] * rgb).sum(1), (w * depth).sum(1), w.sum(1), w)
 
 
@@ -153,6 +161,7 @@ def render_ray_groups(
     frame: MPIFrame,
     groups: Sequence[tuple[torch.Tensor, torch.Tensor, torch.Tensor]],
     color_grad: Sequence[bool | float] | None = None,
+    colour_grad_min_weight: float = 0.0,
 ) -> list[RayOutput]:
     """Render rays of several target cameras from one MPI with a single field query.
 
@@ -164,6 +173,8 @@ def render_ray_groups(
         color_grad: per group, the factor on the gradients that flow to the field's colours
             (default 1 for all; True is 1, False is 0: only alpha, the geometry, receives the
             group's gradients). The rendered values do not depend on it.
+        colour_grad_min_weight: samples weighing less in their ray pass no gradient to their
+            colour (:func:`composite`).
     Returns:
         one RayOutput per group.
     """
@@ -193,7 +204,8 @@ def render_ray_groups(
             rgb_g = rgb_g.detach()
         elif scale != 1.0:
             rgb_g = rgb_g.detach() + scale * (rgb_g - rgb_g.detach())
-        outs.append(composite(rgb_g, alpha_g * inside, torch.where(inside, lam, torch.zeros_like(lam))))
+        depth_g = torch.where(inside, lam, torch.zeros_like(lam))
+        outs.append(composite(rgb_g, alpha_g * inside, depth_g, colour_grad_min_weight))
     return outs
 
 
