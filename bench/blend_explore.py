@@ -7,7 +7,8 @@ target's compositing weights over ``seen_k = T_ref,k * inside`` (``T_ref,k`` the
 from the reference camera to plane k at the same texel, ``inside`` 1 where the texel lies in the
 reference photo, 0 in the margin), rendered as a colour. A blend then weighs MPI i at a pixel by
 the renderer's per-camera weight times a function of that share, or (``consensus_<sigma>``) by
-how well its depth there agrees with the other MPIs' (:func:`consensus`). Test views are scored
+how well its depth there agrees with the other MPIs' (:func:`consensus`), or
+(``inverse_distance_<q>``) by a flatter or steeper power of the camera distance. Test views are scored
 too (``--views``), only to see afterwards whether validation predicted them.
 
 Usage::
@@ -105,6 +106,9 @@ BLENDS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
     "seen_sq_eps0.03": lambda s: s * s + 0.03,
 }
 CONSENSUS_SIGMAS = (0.5, 1.0, 2.0, 4.0)  # in plane spacings: the blends "consensus_<sigma>"
+# The renderer's per-camera weights (inverse squared distance) raised to q / 2 and renormalised:
+# the blends "inverse_distance_<q>" (q = 2: the renderer's; 0: the MPIs alike).
+DISTANCE_POWERS = (0.0, 0.5, 1.0)
 
 
 def train_or_load(scene: str, data: Path, bakes: Path) -> tuple[Any, BakedScene, float]:
@@ -150,6 +154,10 @@ def main() -> None:
                 extras = {name: [fn(s) for s in seen] for name, fn in BLENDS.items()}
                 for sigma in CONSENSUS_SIGMAS:
                     extras[f"consensus_{sigma}"] = consensus(outs, weights, sigma * spacing, near, far)
+                for q in DISTANCE_POWERS:  # factors w_i^(q / 2 - 1): the weights become w_i^(q / 2)
+                    extras[f"inverse_distance_{q}"] = [
+                        torch.full_like(s, float(weights[i]) ** (q / 2 - 1)) for i, s in enumerate(seen)
+                    ]
                 for name, extra in extras.items():
                     rgb = blend_with(outs, weights, extra).reshape(baked.height, baked.width, 3).numpy()
                     scores.setdefault(name, []).append((psnr(rgb, gt), ssim(rgb, gt), lpips(rgb, gt)))
