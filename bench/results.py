@@ -33,7 +33,7 @@ POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 PROFILE_REPORT = "profile_job_fern_cpu.json"
 PREVIEW_REPORT = "preview_quality_fern_half.json"
 TIMELINE_REPORT = "job_timeline_fern_cpu_kernels.json"
-BUILD_REPORT = "model_build_time_fern_view_cost.json"
+BUILD_REPORT = "model_build_time_fern_fused.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
 SERVICE_REPORT = "service_cpu.json"
 DEPLOYMENT_REPORT = "deployment_test.json"
@@ -217,10 +217,15 @@ def speed() -> list[str]:
             "",
             "The model build alone (target <= 10 s), the sweep's torch ops, its compiled kernels"
             f"{' and commit ' + b['command'].split('--before ')[1].split()[0] if 'before' in med else ''}",
-            f"alternating, {len(b['seconds']['torch'])} runs each (`{b['command']}`, {source(b, BUILD_REPORT)}):",
+            f"alternating, {len(b['seconds']['compiled'])} runs each (`{b['command']}`, {source(b, BUILD_REPORT)}):",
             "median " + ", ".join(f"{k} {v:.1f} s" for k, v in med.items()) + "; the compiled build's parameters",
-            f"within {b['largest_parameter_difference']:.1f} of the torch build's (logits of near-tied texels:",
-            '`PROFILE.md`; the views are the same, table "Speed changes" below).',
+            f"within {b['compiled_largest_parameter_difference_from']['torch']:.1f} of the torch build's (logits of"
+            ' near-tied texels: `PROFILE.md`; the views are the same, table "Speed changes" below)'
+            + (
+                f", the same as the commit's to the bit: {b['compiled_same_model_to_the_bit_as']['before']}."
+                if "before" in med
+                else "."
+            ),
             "Compare it with the table above only where both name the same machine and commit.",
         ]
     p = load(PREVIEW_REPORT)

@@ -11,7 +11,6 @@ sweep's settings.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -38,21 +37,20 @@ def sample_image(image: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, t
 
 
 @torch.no_grad()
-def _view_cost(
+def _texel_cost(
     fr: Any,
     other: Any,
     image: torch.Tensor,
     ref_grid: torch.Tensor,
     uv_ref: torch.Tensor,
-    aggregate: Callable[[torch.Tensor], torch.Tensor],
     cost: str,
     compiled: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The window-averaged matching cost [D, h, w] of the reference MPI ``fr``'s planes against
-    one other view (``other``'s frame, its photo ``image`` [3, H, W]), and where that view sees
-    them ([D, h, w] bool). ``ref_grid`` [3, h, w]: the reference colour at the texels, whose
-    reference pixels are ``uv_ref`` [h * w, 2]. On the CPU a compiled kernel computes the
-    per-texel cost (:func:`cmc.method.sweep_kernel.view_cost`) unless ``compiled`` is False;
+    """The per-texel matching cost [D, h, w] of the reference MPI ``fr``'s planes against one
+    other view (``other``'s frame, its photo ``image`` [3, H, W]), 0 where that view does not see
+    the texel, and where it sees them ([D, h, w] bool). ``ref_grid`` [3, h, w]: the reference
+    colour at the texels, whose reference pixels are ``uv_ref`` [h * w, 2]. On the CPU a compiled
+    kernel computes it (:func:`cmc.method.sweep_kernel.view_cost`) unless ``compiled`` is False;
     elsewhere :func:`view_cost_torch`, its twin."""
     # Homographies taking view-j pixels to reference pixels for the reference planes; invert.
     H_ref_from_j = homographies_ref_from_tgt(fr.K, fr.ref_from_world, other.K, other.world_from_ref, fr.depths)
@@ -62,12 +60,8 @@ def _view_cost(
         from cmc.method import sweep_kernel
 
         uv = uv_ref.reshape(*ref_grid.shape[1:], 2)
-        diff, inside = sweep_kernel.view_cost(H_j_from_ref, image, ref_grid, uv, census_radius, AD_SCALE, CENSUS_SCALE)
-    else:
-        diff, inside = view_cost_torch(H_j_from_ref, image, ref_grid, uv_ref, census_radius)
-    # Window-averaged cost over the texels this view sees (sum of costs / weight seen).
-    frac = aggregate(inside.float())
-    return aggregate(diff) / frac.clamp_min(1e-6), frac > 0
+        return sweep_kernel.view_cost(H_j_from_ref, image, ref_grid, uv, census_radius, AD_SCALE, CENSUS_SCALE)
+    return view_cost_torch(H_j_from_ref, image, ref_grid, uv_ref, census_radius)
 
 
 def view_cost_torch(
@@ -97,18 +91,41 @@ def view_cost_torch(
     return diff * inside, inside
 
 
-def _combined_cost(cost: torch.Tensor, seen: torch.Tensor, occlusion_aware: bool, kind: str) -> torch.Tensor:
-    """The other views' costs [V, D, h, w] as one [D, h, w]: their mean over the views that see
-    a texel, or with ``occlusion_aware`` the lowest; ``seen`` [V, D, h, w] bool; ``kind`` the
-    cost ("ad" or "ad_census")."""
-    if occlusion_aware:
-        c = torch.where(seen, cost, torch.full_like(cost, float("inf"))).amin(0)
-    else:
-        c = (cost * seen).sum(0) / seen.sum(0).clamp_min(1)
-    # A plane no other view sees costs what a random match would: colour difference 0.5, and
-    # half the census bits.
+def _combined_window_cost(
+    weights: torch.Tensor | None,
+    window: int,
+    costs: list[torch.Tensor],
+    seen: list[torch.Tensor],
+    occlusion_aware: bool,
+    kind: str,
+    compiled: bool = True,
+) -> torch.Tensor:
+    """The other views' per-texel costs (each [D, h, w], 0 where unseen; ``seen`` each [D, h, w]
+    bool) as one window-averaged cost [D, h, w]. Each view's cost is averaged over the window
+    (:func:`_window_weights`; ``weights`` None: uniform) over the texels it sees (sum of costs /
+    weight seen); the views that see a texel through the window are then averaged, or with
+    ``occlusion_aware`` the lowest is taken. A plane no other view sees costs what a random match
+    would: colour difference 0.5, and half the census bits (``kind``: "ad" or "ad_census"). On
+    the CPU with edge-aware weights a compiled kernel does it all in one pass
+    (:func:`cmc.method.sweep_kernel.combined_window_cost`, the same result to the bit) unless
+    ``compiled`` is False."""
     flat = 0.5 if kind == "ad" else 2 - math.exp(-0.5 / AD_SCALE) - math.exp(-0.5 / CENSUS_SCALE)
-    return torch.where(seen.any(0), c, torch.full_like(c, flat))
+    if compiled and weights is not None and weights.device.type == "cpu" and costs[0].dtype == torch.float32:
+        from cmc.method import sweep_kernel
+
+        return sweep_kernel.combined_window_cost(weights, window, costs, seen, occlusion_aware, flat)
+    aggregate = _window_sum(weights, window)
+    averaged, seen_through = [], []
+    for c, s in zip(costs, seen, strict=True):
+        frac = aggregate(s.float())
+        averaged.append(aggregate(c) / frac.clamp_min(1e-6))
+        seen_through.append(frac > 0)
+    cost, seen_any = torch.stack(averaged), torch.stack(seen_through)
+    if occlusion_aware:
+        c = torch.where(seen_any, cost, torch.full_like(cost, float("inf"))).amin(0)
+    else:
+        c = (cost * seen_any).sum(0) / seen_any.sum(0).clamp_min(1)
+    return torch.where(seen_any.any(0), c, torch.full_like(c, flat))
 
 
 def plane_sweep_weights(
@@ -170,14 +187,14 @@ def plane_sweep_weights(
     if cfg.cost not in ("ad", "ad_census"):
         raise ValueError(f"unknown plane-sweep cost {cfg.cost!r}; choose 'ad' or 'ad_census'")
     ref_grid = ref_rgb.T.reshape(3, height, width)
-    aggregate = _window_mean(ref_grid, cfg.window, cfg.edge_sigma or None)
     costs, seen = [], []
     for j, other in enumerate(frames):
         if j != ref:
-            view_cost, view_seen = _view_cost(fr, other, images[j], ref_grid, uv_ref, aggregate, cfg.cost)
+            view_cost, view_seen = _texel_cost(fr, other, images[j], ref_grid, uv_ref, cfg.cost)
             costs.append(view_cost)
             seen.append(view_seen)
-    c = _combined_cost(torch.stack(costs), torch.stack(seen), cfg.occlusion_aware, cfg.cost)
+    weights = _window_weights(ref_grid, cfg.window, cfg.edge_sigma or None)
+    c = _combined_window_cost(weights, cfg.window, costs, seen, cfg.occlusion_aware, cfg.cost)
     if cfg.smoothness[1] > 0:
         c = semi_global(c, *cfg.smoothness)
     probs = torch.softmax(-c / cfg.temperature, dim=0)
@@ -251,34 +268,39 @@ def _nearest_inside(coords: torch.Tensor, size: int) -> torch.Tensor:
     return torch.arange(len(coords), device=coords.device).clamp(int(inside[0]), int(inside[-1]))
 
 
-def _window_mean(guide: torch.Tensor, window: int, edge_sigma: float | None, compiled: bool = True):
-    """A function [C, h, w] -> [C, h, w]: a weighted sum over each texel's window, texels outside
-    the grid counting as zero. Uniform weights 1 / window^2 without ``edge_sigma``; else
-    ``exp(-mean_c |guide(x) - guide(y)| / edge_sigma)`` (guide [3, h, w]), normalised over the
-    window's texels inside the grid. Callers divide two such sums (costs by coverage), so only
-    the relative weights matter. With ``edge_sigma`` on the CPU a compiled kernel sums the windows
-    (:func:`cmc.method.sweep_kernel.window_sum`, the same result to the bit) unless ``compiled`` is False."""
+def _window_weights(guide: torch.Tensor, window: int, edge_sigma: float | None) -> torch.Tensor | None:
+    """The weights [h, w, window^2] (offsets row by row) of the edge-aware window at each texel of
+    ``guide`` [3, h, w]: ``exp(-mean_c |guide(x) - guide(y)| / edge_sigma)``, 0 for texels outside
+    the grid, normalised over the window. None without ``edge_sigma`` (a uniform window)."""
+    if edge_sigma is None:
+        return None
     r = window // 2
     h, w = guide.shape[-2:]
-    if edge_sigma is None:
-        return lambda x: F.avg_pool2d(x[:, None], window, stride=1, padding=r)[:, 0]
     padded = F.pad(guide, (r, r, r, r))
     inside = F.pad(torch.ones(1, h, w, device=guide.device), (r, r, r, r))
-    offsets = [(dy, dx) for dy in range(window) for dx in range(window)]
     weights = []
-    for dy, dx in offsets:
-        diff = (padded[:, dy : dy + h, dx : dx + w] - guide).abs().mean(0)
-        weights.append(torch.exp(-diff / edge_sigma) * inside[0, dy : dy + h, dx : dx + w])
+    for dy in range(window):
+        for dx in range(window):
+            diff = (padded[:, dy : dy + h, dx : dx + w] - guide).abs().mean(0)
+            weights.append(torch.exp(-diff / edge_sigma) * inside[0, dy : dy + h, dx : dx + w])
     total = sum(weights)
-    weights = [wt / total for wt in weights]
-    if compiled and guide.device.type == "cpu" and guide.dtype == torch.float32:
-        from cmc.method import sweep_kernel
+    return torch.stack([wt / total for wt in weights], -1)
 
-        return sweep_kernel.window_sum(torch.stack(weights, -1), window)
+
+def _window_sum(weights: torch.Tensor | None, window: int):
+    """A function [C, h, w] -> [C, h, w]: a weighted sum over each texel's window, texels outside
+    the grid counting as zero, with the weights of :func:`_window_weights` (None: uniform, 1 /
+    window^2). Callers divide two such sums (costs by coverage), so only the relative weights
+    matter."""
+    r = window // 2
+    if weights is None:
+        return lambda x: F.avg_pool2d(x[:, None], window, stride=1, padding=r)[:, 0]
+    h, w = weights.shape[:2]
+    offsets = [(dy, dx) for dy in range(window) for dx in range(window)]
 
     def apply(x: torch.Tensor) -> torch.Tensor:
         xp = F.pad(x, (r, r, r, r))
-        return sum(wt * xp[:, dy : dy + h, dx : dx + w] for wt, (dy, dx) in zip(weights, offsets, strict=True))
+        return sum(weights[..., k] * xp[:, dy : dy + h, dx : dx + w] for k, (dy, dx) in enumerate(offsets))
 
     return apply
 

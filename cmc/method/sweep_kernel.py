@@ -1,8 +1,8 @@
 """Compiled CPU kernels of the plane sweep (:mod:`cmc.method.planesweep`): the per-texel matching
-cost of a view (warp, colour difference, census distance), the edge-aware window sums and the
-semi-global aggregation, which took most of the model build on the CPU as torch ops (passes over
-[D, h * w, 3] intermediates, one pass over the whole cost volume per window offset, one batch of
-small ops per texel column of a path).
+cost of a view (warp, colour difference, census distance), the edge-aware window averages
+combined over the views, and the semi-global aggregation, which took most of the model build on
+the CPU as torch ops (passes over [D, h * w, 3] intermediates, one pass over the whole cost volume
+per window offset, one batch of small ops per texel column of a path).
 
 Each kernel walks the texels once and keeps the planes of a texel contiguous (arrays laid out
 [h, w, D]), so a window offset costs one read of D contiguous floats instead of a pass over the
@@ -27,27 +27,29 @@ _JIT = dict(nogil=True, cache=True, boundscheck=False, error_model="numpy")
 
 @numba.njit(parallel=True, **_JIT)
 def _census(g_ref, g_w, radius, out):  # pragma: no cover - compiled
+    """out [h, w, D]: the share of the census bits (neighbour brighter than the centre, over the
+    window of ``radius``) that differ between g_ref [h, w] and each plane of g_w [h, w, D]. The
+    count is an integer per plane (a branch-free XOR the compiler vectorises)."""
     h, w, D = g_w.shape
     n = np.float32((2 * radius + 1) ** 2 - 1)
     for y in numba.prange(h):
+        count = np.empty(D, np.int32)
         for x in range(w):
-            acc = out[y, x]
             centre = g_w[y, x]
-            for d in range(D):
-                acc[d] = 0
+            count[:] = 0
             for dy in range(-radius, radius + 1):
                 sy = min(max(y + dy, 0), h - 1)
                 for dx in range(-radius, radius + 1):
                     if dy == 0 and dx == 0:
                         continue
                     sx = min(max(x + dx, 0), w - 1)
-                    ref_bit = g_ref[sy, sx] > g_ref[y, x]
+                    ref_bit = np.int32(g_ref[sy, sx] > g_ref[y, x])
                     src = g_w[sy, sx]
                     for d in range(D):
-                        if (src[d] > centre[d]) != ref_bit:
-                            acc[d] += 1
+                        count[d] += np.int32(src[d] > centre[d]) ^ ref_bit
+            acc = out[y, x]
             for d in range(D):
-                acc[d] /= n
+                acc[d] = np.float32(count[d]) / n
 
 
 def census_distance(g_ref: torch.Tensor, g_w: torch.Tensor, radius: int) -> torch.Tensor:
@@ -169,39 +171,76 @@ def view_cost(
 
 
 @numba.njit(parallel=True, **_JIT)
-def _window_sum(x_hwc, weights, window, out):  # pragma: no cover - compiled
-    h, w, C = x_hwc.shape
+def _combined_window_cost(weights, window, costs, seen, occlusion_aware, flat, out):  # pragma: no cover - compiled
+    """out [h, w, D]: each view's cost (costs: a tuple of V [h, w, D] arrays, 0 where unseen)
+    summed over the window with ``weights`` [h, w, window^2], divided by the window's weight of
+    texels that view sees (seen: V [h, w, D] bool arrays); over the views that see any, the
+    lowest (``occlusion_aware``) or their mean; ``flat`` where none does."""
+    V = len(costs)
+    h, w, D = costs[0].shape
     r = window // 2
+    inf = np.float32(np.inf)
     for y in numba.prange(h):
+        total = np.empty((V, D), np.float32)
+        frac = np.empty((V, D), np.float32)
         for x in range(w):
-            acc = out[y, x]
-            for c in range(C):
-                acc[c] = 0
+            total[:] = 0
+            frac[:] = 0
             for k in range(window * window):
                 sy, sx = y + k // window - r, x + k % window - r
                 if sy < 0 or sy >= h or sx < 0 or sx >= w:
                     continue
                 wt = weights[y, x, k]
-                src = x_hwc[sy, sx]
-                for c in range(C):
-                    acc[c] += wt * src[c]
+                for v in range(V):
+                    src, src_seen = costs[v][sy, sx], seen[v][sy, sx]
+                    for d in range(D):
+                        total[v, d] += wt * src[d]
+                        frac[v, d] += wt * np.float32(src_seen[d])
+            acc = out[y, x]
+            for d in range(D):
+                best, n = inf, 0
+                for v in range(V):
+                    if frac[v, d] > 0:
+                        c = total[v, d] / max(frac[v, d], np.float32(1e-6))
+                        if occlusion_aware:
+                            best = min(best, c)
+                        else:
+                            best = c if n == 0 else best + c
+                        n += 1
+                if n == 0:
+                    acc[d] = flat
+                elif occlusion_aware:
+                    acc[d] = best
+                else:
+                    acc[d] = best / np.float32(n)
 
 
-def window_sum(weights: torch.Tensor, window: int):
-    """The function [C, h, w] -> [C, h, w] of :func:`cmc.method.planesweep._window_mean` with the
-    window's weights given (CPU float32 [h, w, window^2], offsets row by row): the same sums in
-    the same order, so the same result to the bit. It reads and returns [C, h, w] views of
-    [h, w, C] arrays without a copy (any other layout is copied)."""
-    w = np.ascontiguousarray(weights.numpy())
-
-    def apply(x: torch.Tensor) -> torch.Tensor:
-        hwc = np.ascontiguousarray(x.permute(1, 2, 0).numpy(), dtype=np.float32)
-        out = np.empty_like(hwc)
-        with kernel_cache.PARALLEL_LAUNCH:
-            _window_sum(hwc, w, window, out)
-        return torch.from_numpy(out).permute(2, 0, 1)
-
-    return apply
+def combined_window_cost(
+    weights: torch.Tensor,
+    window: int,
+    costs: list[torch.Tensor],
+    seen: list[torch.Tensor],
+    occlusion_aware: bool,
+    flat: float,
+) -> torch.Tensor:
+    """:func:`cmc.method.planesweep._combined_window_cost` with edge-aware ``weights`` [h, w,
+    window^2] (CPU float32), each view's cost and seen [D, h, w] (views of [h, w, D] arrays are
+    read without a copy): the same sums and divisions in the same order, so the same result to the
+    bit. Returns [D, h, w], a view of an [h, w, D] array."""
+    hwd = tuple(np.ascontiguousarray(c.permute(1, 2, 0).numpy()) for c in costs)
+    hwd_seen = tuple(np.ascontiguousarray(s.permute(1, 2, 0).numpy()) for s in seen)
+    out = np.empty_like(hwd[0])
+    with kernel_cache.PARALLEL_LAUNCH:
+        _combined_window_cost(
+            np.ascontiguousarray(weights.numpy()),
+            window,
+            hwd,
+            hwd_seen,
+            occlusion_aware,
+            np.float32(flat),
+            out,
+        )
+    return torch.from_numpy(out).permute(2, 0, 1)
 
 
 @numba.njit(**_JIT)
@@ -239,16 +278,39 @@ def _sgm_rows(cost, p1, p2, out):  # pragma: no cover - compiled
             prev[:] = new
 
 
+@numba.njit(parallel=True, **_JIT)
+def _sgm_cols_mean(cost, p1, p2, rows):  # pragma: no cover - compiled
+    """rows[y, x] <- (rows[y, x] + the top-to-bottom plus the bottom-to-top path cost) / 4, the
+    mean of the four paths (cost [h, w, D]; rows holds the two row paths of :func:`_sgm_rows`)."""
+    h, w, D = cost.shape
+    four = np.float32(4)
+    for x in numba.prange(w):
+        down = np.empty((h, D), np.float32)
+        prev, new = cost[0, x].copy(), np.empty(D, np.float32)
+        down[0] = prev
+        for y in range(1, h):
+            _sgm_step(prev, cost[y, x], p1, p2, new)
+            down[y] = new
+            prev[:] = new
+        prev[:] = cost[h - 1, x]
+        for d in range(D):
+            rows[h - 1, x, d] = (rows[h - 1, x, d] + (down[h - 1, d] + prev[d])) / four
+        for y in range(h - 2, -1, -1):
+            _sgm_step(prev, cost[y, x], p1, p2, new)
+            for d in range(D):
+                rows[y, x, d] = (rows[y, x, d] + (down[y, d] + new[d])) / four
+            prev[:] = new
+
+
 def semi_global(cost: torch.Tensor, p1: float, p2: float) -> torch.Tensor:
-    """:func:`cmc.method.planesweep.semi_global` of a CPU float32 cost [D, h, w] -> [D, h, w]."""
+    """:func:`cmc.method.planesweep.semi_global` of a CPU float32 cost [D, h, w] -> [D, h, w]
+    (a view of an [h, w, D] cost is read without a copy)."""
     hwd = np.ascontiguousarray(cost.permute(1, 2, 0).numpy())
-    whd = np.ascontiguousarray(cost.permute(2, 1, 0).numpy())
-    rows, cols = np.empty_like(hwd), np.empty_like(whd)
+    total = np.empty_like(hwd)
     with kernel_cache.PARALLEL_LAUNCH:
-        _sgm_rows(hwd, np.float32(p1), np.float32(p2), rows)
-        _sgm_rows(whd, np.float32(p1), np.float32(p2), cols)
-    total = torch.from_numpy(rows) + torch.from_numpy(cols).transpose(0, 1)
-    return (total / 4).permute(2, 0, 1).contiguous()
+        _sgm_rows(hwd, np.float32(p1), np.float32(p2), total)
+        _sgm_cols_mean(hwd, np.float32(p1), np.float32(p2), total)
+    return torch.from_numpy(total).permute(2, 0, 1).contiguous()
 
 
 def warm_up() -> None:
@@ -258,5 +320,6 @@ def warm_up() -> None:
     census_distance(guide.mean(0), torch.rand(2, 6, 5), 1)
     view_cost(torch.eye(3).expand(2, 3, 3), torch.rand(3, 6, 5), guide, torch.rand(6, 5, 2) * 5, 1, 0.05, 0.3)
     view_cost(torch.eye(3).expand(2, 3, 3), torch.rand(3, 6, 5), guide, torch.rand(6, 5, 2) * 5, None, 0.05, 0.3)
-    window_sum(torch.rand(6, 5, 9), 3)(torch.rand(2, 6, 5))
+    costs = torch.rand(2, 6, 5, 4).permute(0, 3, 1, 2)
+    combined_window_cost(torch.rand(6, 5, 9), 3, list(costs), list(costs > 0.5), True, 1.0)
     semi_global(torch.rand(4, 6, 5), 0.2, 2.0)
