@@ -177,7 +177,8 @@ def test_status_of_a_ready_scene(ready) -> None:
 def test_eta_seconds_covers_the_rest_of_the_job(ready) -> None:
     """eta_seconds is the whole job's: while estimating poses it holds the training to come, in
     every later stage it is set, and the bake has an estimate of its own, from the preview's."""
-    from cmc.method.eta import reference_training_s
+    from cmc.config import preset_config
+    from cmc.method.eta import FAST_RAYS_PER_VIEW, bake_steps, reference_training_s, step_s_from_build
 
     client, sid, _, _ = ready
     writes = client.job_writes
@@ -186,6 +187,13 @@ def test_eta_seconds_covers_the_rest_of_the_job(ready) -> None:
     poses = [eta for status, _, eta in writes if status == "estimating_poses"]
     assert min(poses) >= reference_training_s(25)  # 25 steps and the bake are still to come
     assert any(status == "training" and 0 < p < 1 for status, p, _ in writes)
+    # Once built, before a step is measured: the 25 steps and both bakes at the step time the
+    # build's own pace predicts (cmc.method.eta.step_s_from_build).
+    rec = client.app.state.services.store.get(sid)
+    step_s = step_s_from_build(rec.stats["train"]["build_seconds"], 96, 72)
+    bake = bake_steps(96, 72, preset_config("fast").model.margin, 3, FAST_RAYS_PER_VIEW)
+    expected = (25 + bake * (1 + PREVIEW_TEXEL_SCALE**2)) * step_s
+    assert any(s == "training" and p == 0.0 and eta == pytest.approx(expected, rel=0.02) for s, p, eta in writes)
     bake = [(p, eta) for status, p, eta in writes if status == "baking"]
     preview_bake_s = client.app.state.services.store.get(sid).stats["preview"]["bake_seconds"]
     # the final bake's first estimate: the preview's measured bake at four times its texels

@@ -356,7 +356,7 @@ class _TrainPhase:
         self.bake_s: float | None = None  # the final bake's seconds, from this attempt's preview bake
         at = ctx.settings.preview_at
         self.preview_step = math.ceil(at * cfg.steps) if at < 1 and "preview" not in rec.stats else None
-        self.step_s = REFERENCE_STEP_S  # until this worker has measured its own steps
+        self.step_s = REFERENCE_STEP_S  # until this worker has built its model (then: its pace) and trained
         self.preview_s = 0.0  # seconds this attempt spent baking the preview (no training step's time)
         self.device = _training_device(ctx.settings)
         self.stats: dict[str, Any] = dict(rec.stats)
@@ -377,23 +377,36 @@ class _TrainPhase:
 
     def build(self) -> None:
         """The model (plane sweeps: seconds to minutes), at the stored checkpoint when usable."""
+        from cmc.method.eta import step_s_from_build
         from cmc.method.training import Trainer
 
         cfg, hb = self.cfg, self.hb
+        size = self.scene.cameras.width, self.scene.cameras.height
         building = f"building the model ({cfg.preset} preset: plane sweep"
         hb.set(status="training", progress=0.0, eta_seconds=self._eta(cfg.steps, built=False), detail=building + ")")
         hb.flush()
         t0 = time.perf_counter()
 
         def on_build_progress(share: float) -> None:
-            """The build's share done in the detail, and the rest of it at its pace so far in the ETA."""
-            rest = (time.perf_counter() - t0) * (1 - share) / share
-            hb.set(eta_seconds=round(rest + self._eta(cfg.steps), 1), detail=f"{building}, {100 * share:.0f} % done)")
+            """The build's share done in the detail; in the ETA the rest of it at its pace so far,
+            and the steps to come at the step time that pace predicts for this machine."""
+            elapsed = time.perf_counter() - t0
+            whole = elapsed / share
+            self.step_s = step_s_from_build(whole, *size)
+            eta = round(whole - elapsed + self._eta(cfg.steps), 1)
+            hb.set(eta_seconds=eta, detail=f"{building}, {100 * share:.0f} % done)")
 
         make = lambda: Trainer(self.scene, cfg, self.device, on_build_progress)  # noqa: E731
         self.trainer = _resume(self.ctx, self.rec, make(), make)
+        build_s = time.perf_counter() - t0
+        self.step_s = step_s_from_build(build_s, *size)  # until this worker trains a step
         self.resumed_from = resumed = self.trainer.step
-        self.stats["train"] = {"steps": cfg.steps, "device": str(self.device), "resumed_from_step": resumed}
+        self.stats["train"] = {
+            "steps": cfg.steps,
+            "device": str(self.device),
+            "resumed_from_step": resumed,
+            "build_seconds": round(build_s, 3),
+        }
         hb.set(
             status="training",
             progress=resumed / cfg.steps,

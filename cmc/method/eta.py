@@ -18,7 +18,9 @@ speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2
   much faster: until training has run a step, a job's estimate is pessimistic there.
 * The model build (the plane sweeps), in training steps (:func:`build_steps`), and baking
   (:func:`bake_steps`): modelled from the same jobs. A job that bakes a preview measures its own
-  bake speed there (``worker.pipeline``).
+  bake speed there, and until it has trained a step it takes its step time from its own model
+  build's pace (:func:`step_s_from_build`; ``worker.pipeline``): a slower or faster CPU than the
+  reference shows in the build first.
 """
 
 from __future__ import annotations
@@ -65,10 +67,20 @@ def bake_steps(width: int, height: int, margin: float, num_views: int, rays_per_
 
 
 def build_steps(width: int, height: int) -> float:
-    """The model build's cost (the plane sweeps) in training steps (a model fitted to one
-    measurement): fern at 504x378, 15 s, about 21 steps; in proportion to the photos' pixels up to
-    that size, no more above it (the sweep's grid is capped: ``SweepConfig.max_texels``)."""
-    return 21.0 * min(1.0, width * height / (504 * 378))
+    """The model build's cost (the plane sweeps, with loading the photos and the kernels) in
+    training steps (a model fitted to one measurement): fern at 504x378 in ``cmc serve`` on the
+    2-core CPU, 13.5 s against training steps of 0.96-1.08 s, about 13 steps
+    (bench/reports/current/job_timeline_fern_cpu_sweep_fused.json); in proportion to the photos'
+    pixels up to that size, no more above it (the sweep's grid is capped: ``SweepConfig.max_texels``)."""
+    return 13.0 * min(1.0, width * height / (504 * 378))
+
+
+def step_s_from_build(build_s: float, width: int, height: int) -> float:
+    """Seconds per training step predicted from a model build of ``build_s`` seconds on the same
+    machine (photos ``width`` x ``height``): the build and the steps run the same kind of compiled
+    kernels on the same cores. On a GPU the steps gain more than the build, so the prediction is
+    pessimistic there until a step is measured."""
+    return build_s / build_steps(width, height)
 
 
 def reference_training_s(steps: int) -> float:
