@@ -113,11 +113,11 @@ def test_cost_model_follows_the_config() -> None:
         assert first_full_step(cfg) == next(s for s in range(steps + 1) if s >= cfg.loss.recon_only_fraction * steps)
     assert bake_steps(504, 378, 1.2, 3, 2048) == pytest.approx(29.77, abs=0.01)
     assert bake_steps(1008, 756, 1.2, 3, 2048) == pytest.approx(4 * bake_steps(504, 378, 1.2, 3, 2048))
-    assert build_steps(504, 378) == 13.0 and build_steps(252, 189) == pytest.approx(13.0 / 4)
-    assert build_steps(1008, 756) == 13.0  # the sweep's grid is capped: no more than fern's
+    assert build_steps(504, 378) == 11.0 and build_steps(252, 189) == pytest.approx(11.0 / 4)
+    assert build_steps(1008, 756) == 11.0  # the sweep's grid is capped: no more than fern's
     # a machine that builds fern's model in twice the reference's time trains twice as slowly
-    assert step_s_from_build(2 * 13.0 * REFERENCE_STEP_S, 504, 378) == pytest.approx(2 * REFERENCE_STEP_S)
-    assert step_s_from_build(13.0, 252, 189) == pytest.approx(4.0)  # a quarter of the pixels, a quarter of the sweep
+    assert step_s_from_build(2 * 11.0 * REFERENCE_STEP_S, 504, 378) == pytest.approx(2 * REFERENCE_STEP_S)
+    assert step_s_from_build(11.0, 252, 189) == pytest.approx(4.0)  # a quarter of the pixels, a quarter of the sweep
 
 
 def test_preset_steps_match_the_presets() -> None:

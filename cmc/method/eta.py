@@ -68,11 +68,11 @@ def bake_steps(width: int, height: int, margin: float, num_views: int, rays_per_
 
 def build_steps(width: int, height: int) -> float:
     """The model build's cost (the plane sweeps, with loading the photos and the kernels) in
-    training steps (a model fitted to one measurement): fern at 504x378 in ``cmc serve`` on the
-    2-core CPU, 13.5 s against training steps of 0.96-1.08 s, about 13 steps
-    (bench/reports/current/job_timeline_fern_cpu_sweep_fused.json); in proportion to the photos'
+    training steps (a model fitted to one pair of jobs): fern at 504x378 in ``cmc serve`` on the
+    2-core CPU, builds of 10.5 and 12 s against training steps of 1.08 and 0.96 s, about 11 steps
+    (bench/reports/history/job_timeline_fern_cpu_eta_build13.json); in proportion to the photos'
     pixels up to that size, no more above it (the sweep's grid is capped: ``SweepConfig.max_texels``)."""
-    return 13.0 * min(1.0, width * height / (504 * 378))
+    return 11.0 * min(1.0, width * height / (504 * 378))
 
 
 def step_s_from_build(build_s: float, width: int, height: int) -> float:
