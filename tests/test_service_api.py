@@ -191,8 +191,8 @@ def test_eta_seconds_covers_the_rest_of_the_job(ready) -> None:
     # build's own pace predicts (cmc.method.eta.step_s_from_build).
     rec = client.app.state.services.store.get(sid)
     step_s = step_s_from_build(rec.stats["train"]["build_seconds"], 96, 72)
-    bake = bake_steps(96, 72, preset_config("fast").model.margin, 3, FAST_RAYS_PER_VIEW)
-    expected = (25 + bake * (1 + PREVIEW_TEXEL_SCALE**2)) * step_s
+    bake_cost = bake_steps(96, 72, preset_config("fast").model.margin, 3, FAST_RAYS_PER_VIEW)
+    expected = (25 + bake_cost * (1 + PREVIEW_TEXEL_SCALE**2)) * step_s
     assert any(s == "training" and p == 0.0 and eta == pytest.approx(expected, rel=0.02) for s, p, eta in writes)
     bake = [(p, eta) for status, p, eta in writes if status == "baking"]
     preview_bake_s = client.app.state.services.store.get(sid).stats["preview"]["bake_seconds"]
