@@ -17,6 +17,7 @@ from cmc.method.eta import (
     TrainingETA,
     bake_steps,
     build_steps,
+    final_bake_s,
     first_full_step,
     full_cost_ratio,
     step_s_from_build,
@@ -118,6 +119,9 @@ def test_cost_model_follows_the_config() -> None:
     # a machine that builds fern's model in twice the reference's time trains twice as slowly
     assert step_s_from_build(2 * 11.0 * REFERENCE_STEP_S, 504, 378) == pytest.approx(2 * REFERENCE_STEP_S)
     assert step_s_from_build(11.0, 252, 189) == pytest.approx(4.0)  # a quarter of the pixels, a quarter of the sweep
+    assert final_bake_s(15.0, 1.0) == 15.0  # no preview yet: the bake in steps
+    assert final_bake_s(15.0, 1.0, 9.7) == 15.0  # a CPU: the steps say more than the step-0 preview
+    assert final_bake_s(15.0, 0.06, 9.7) == 9.7  # a GPU: the preview's measured bake
 
 
 def test_preset_steps_match_the_presets() -> None:

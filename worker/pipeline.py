@@ -353,7 +353,7 @@ class _TrainPhase:
         cams = self.scene.cameras
         self.bake_cost = bake_steps(cams.width, cams.height, cfg.model.margin, len(self.scene), cfg.rays_per_view)
         self.build_cost = build_steps(cams.width, cams.height)
-        self.bake_s: float | None = None  # the final bake's seconds, from this attempt's preview bake
+        self.bake_s: float | None = None  # the final bake's seconds as this attempt's preview bake predicts
         at = ctx.settings.preview_at
         self.preview_step = math.ceil(at * cfg.steps) if at < 1 and "preview" not in rec.stats else None
         self.step_s = REFERENCE_STEP_S  # until this worker has built its model (then: its pace) and trained
@@ -366,7 +366,9 @@ class _TrainPhase:
         return self.preview_step is not None and "preview" not in self.stats
 
     def _final_bake_s(self) -> float:
-        return self.bake_s if self.bake_s is not None else self.bake_cost * self.step_s
+        from cmc.method.eta import final_bake_s
+
+        return final_bake_s(self.bake_cost, self.step_s, self.bake_s)
 
     def _bakes_s(self) -> float:
         """Seconds of the bakes still to come (the final, and the preview while pending)."""

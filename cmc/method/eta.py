@@ -18,7 +18,7 @@ speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2
   much faster: until training has run a step, a job's estimate is pessimistic there.
 * The model build (the plane sweeps), in training steps (:func:`build_steps`), and baking
   (:func:`bake_steps`): modelled from the same jobs. A job that bakes a preview measures its own
-  bake speed there, and until it has trained a step it takes its step time from its own model
+  bake speed there (:func:`final_bake_s`), and until it has trained a step it takes its step time from its own model
   build's pace (:func:`step_s_from_build`; ``worker.pipeline``): a slower or faster CPU than the
   reference shows in the build first.
 """
@@ -81,6 +81,17 @@ def step_s_from_build(build_s: float, width: int, height: int) -> float:
     kernels on the same cores. On a GPU the steps gain more than the build, so the prediction is
     pessimistic there until a step is measured."""
     return build_s / build_steps(width, height)
+
+
+def final_bake_s(bake_cost: float, step_s: float, preview_estimate_s: float | None = None) -> float:
+    """Seconds the final bake is expected to take: ``bake_cost`` training steps (:func:`bake_steps`)
+    of ``step_s`` seconds, or once a preview was baked, the longer of that and
+    ``preview_estimate_s`` (the preview's measured bake scaled by its texels). On a CPU the steps
+    say more: fern's final bake took 5-8x the step-0 preview's in ``cmc serve``, not the 4x its
+    texels predict (bench/job_timeline.md); on a GPU the steps are far faster than the bake, which
+    writes its textures on the CPU, and the preview's measurement holds."""
+    by_steps = bake_cost * step_s
+    return by_steps if preview_estimate_s is None else max(by_steps, preview_estimate_s)
 
 
 def reference_training_s(steps: int) -> float:
