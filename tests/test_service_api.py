@@ -190,16 +190,16 @@ def test_eta_seconds_covers_the_rest_of_the_job(ready) -> None:
     # Once built, before a step is measured: the 25 steps and both bakes at the step time the
     # build's own pace predicts (cmc.method.eta.step_s_from_build).
     rec = client.app.state.services.store.get(sid)
-    step_s = step_s_from_build(rec.stats["train"]["build_seconds"], 96, 72)
+    built_step_s = step_s_from_build(rec.stats["train"]["build_seconds"], 96, 72)
     bake_cost = bake_steps(96, 72, preset_config("fast").model.margin, 3, FAST_RAYS_PER_VIEW)
-    expected = (25 + bake_cost * (1 + PREVIEW_TEXEL_SCALE**2)) * step_s
+    expected = (25 + bake_cost * (1 + PREVIEW_TEXEL_SCALE**2)) * built_step_s
     assert any(s == "training" and p == 0.0 and eta == pytest.approx(expected, rel=0.02) for s, p, eta in writes)
     bake = [(p, eta) for status, p, eta in writes if status == "baking"]
     preview_bake_s = rec.stats["preview"]["bake_seconds"]
-    step_s = rec.stats["train"]["seconds_this_attempt"] / 25
+    trained_step_s = rec.stats["train"]["seconds_this_attempt"] / 25
     # the final bake's first estimate: the preview's measured bake at four times its texels, or
     # the bake's cost in steps of this job's measured step time, whichever is longer
-    first = max(preview_bake_s / PREVIEW_TEXEL_SCALE**2, bake_cost * step_s)
+    first = max(preview_bake_s / PREVIEW_TEXEL_SCALE**2, bake_cost * trained_step_s)
     assert bake[0][0] == 0.0 and bake[0][1] == pytest.approx(first, abs=0.15)
     progress = [p for p, _ in bake]  # as the heartbeat wrote it (bake() reports each MPI: test_baking)
     assert progress == sorted(progress) and all(eta > 0 for p, eta in bake if p < 1)
