@@ -171,15 +171,18 @@ def test_folder_manifest_is_published_last(storage: Storage, tmp_path: Path) -> 
 # -- S3 alone -----------------------------------------------------------------------------------
 
 WRITER = """
-import sys, time
+import sys, threading, time
 from pathlib import Path
 from service.storage.s3 import S3Storage
 
 endpoint, bucket, src, work = sys.argv[1:]
 storage = S3Storage(bucket, "cmc", work, endpoint, multipart_bytes=5 << 20)
 
+printing = threading.Lock()
+
 def part_done(**kw):
-    print("part", flush=True)
+    with printing:  # parts upload on several threads: one whole line each
+        print("part", flush=True)
     time.sleep(0.5)  # slow enough for the test to kill this process mid-upload
 
 storage.client.meta.events.register("after-call.s3.UploadPart", part_done)
