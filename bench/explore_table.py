@@ -12,8 +12,9 @@ from pathlib import Path
 BENCH = Path(__file__).resolve().parent
 REPORTS = BENCH / "reports" / "history"  # the rounds' JSON-lines reports
 SCENES = ("fern", "room", "trex")
-# (report, command, what the round asked); every row is compared with the round-3 `base` (the
-# preset itself, trained the same day on the same machine; training is deterministic).
+# (report, command, what the round asked); every row is compared with its round's `base` (the
+# preset of that day, trained on the same machine; training is deterministic), or where the round
+# has none, with the latest round's before it.
 ROUNDS = [
     (
         "explore_gpu_round3.jsonl",
@@ -30,6 +31,18 @@ ROUNDS = [
         "--scenes fern,room,trex --lpips "
         "--workers 9 --seconds 15 --grace 185",
         "round 3's gains together: (0.2, 2.0) with 300 steps and/or 64 planes",
+    ),
+    (
+        "explore_gpu_round5.jsonl",
+        "python3 bench/gpudata.py unpack; CMC_GIT_COMMIT=e09d801 PYTHONPATH=. CMC_LPIPS_DIR=.gpudata/weights "
+        "python3 bench/explore_gpu.py bench/reports/history/explore_gpu_round5_variants.json $OUT "
+        "--data .gpudata/llff --scenes fern,room,trex --lpips --workers 9 --seconds 350 --grace 200",
+        "a full-resolution texture level, more base colour groups, more rays per step (at the same and at "
+        "1.5x the rays in all), a higher learning rate, a weaker concentration prior, a wider sweep window, "
+        "two unseen poses a step. Three calls on one warm machine: the command below, then the same with "
+        "rays6144, rays8192_steps225 and rays8192_groups14 alone (`--seconds 20`), then "
+        "rays8192_steps150 and rays12288_steps150 (`--workers 6`) beside base and rays8192_steps225 on the "
+        "synthetic scene posts (`--scenes '' --synthetic posts --workers 2`)",
     ),
 ]
 ADOPTED = "sgm2_steps300"
@@ -51,7 +64,6 @@ def _cell(rec: dict | None, base: dict, kind: str) -> str:
 
 def main() -> None:
     rounds = [(_load(name), name, command, question) for name, command, question in ROUNDS]
-    base = {r["scene"]: r for r in rounds[0][0] if r["variant"] == "base"}
     first = rounds[0][0][0]
     out = [
         "# `fast` variants on the validation views of fern, room and trex (lent GPU)",
@@ -64,11 +76,18 @@ def main() -> None:
         "`base` scores what the CPU scores (fern 22.09 / 0.700 / 0.249 against 22.10 / 0.700 / 0.249 in",
         "bench/RESULTS.md). Test views are shown only to see afterwards whether validation predicted them.",
         f"Machine: {first['device']}, 16 CPU cores, lent through the device tool; nine trainings at once,",
-        f"so train seconds are not comparable. Date: {first['date']}.",
+        "so train seconds are not comparable.",
         "",
     ]
+    base: dict[str, dict] = {}
     for recs, name, command, question in rounds:
-        out += [f"## {name}: {question}", "", f"Command: `{command}`; commit {recs[0]['git_commit']}.", ""]
+        base = {r["scene"]: r for r in recs if r["variant"] == "base"} or base
+        out += [
+            f"## {name}: {question}",
+            "",
+            f"Command: `{command}`; commit {recs[0]['git_commit']}, {recs[0]['date']}.",
+            "",
+        ]
         out += [
             "| variant | settings | "
             + " | ".join(f"{s} val" for s in SCENES)
@@ -86,6 +105,14 @@ def main() -> None:
             cells += [_cell(by_scene.get(s), base[s], "test") for s in SCENES]
             out.append(f"| {label} | {settings} | " + " | ".join(cells) + " |")
         out.append("")
+        synthetic = [r for r in recs if "halfway" in r]
+        if synthetic:
+            groups = ("near", "halfway", "beyond")
+            out += [f"| variant | scene | {' | '.join(groups)} |", "|---|---|" + "---|" * len(groups)]
+            for r in synthetic:
+                b = next(x for x in synthetic if x["variant"] == "base" and x["scene"] == r["scene"])
+                out.append(f"| {r['variant']} | {r['scene']} | " + " | ".join(_cell(r, b, g) for g in groups) + " |")
+            out.append("")
     recs = rounds[0][0]
     out += [
         "## The MPI blend: inverse distance to the power 2 (the renderer's), 4 or 8",
