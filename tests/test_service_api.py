@@ -20,6 +20,7 @@ from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -939,6 +940,40 @@ def test_unfinished_job_resumes_after_a_restart(tmp_path: Path) -> None:
     # the status says so while it trains
     assert f"training (fast preset, 40 steps, cpu), resumed from the checkpoint of step {resumed}" in details
     assert rec.attempts == 0  # a clean stop is not a lost worker
+
+
+def test_unusable_checkpoint_trains_from_step_zero(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stored checkpoint that cannot be loaded (here torn) is deleted and the job trains from step
+    0; the model is built again for it, and the build time the job records (and paces its ETA by)
+    is that build's alone."""
+    import cmc.method.training
+
+    parts, _, _ = synthetic_upload(steps=40)
+    settings = settings_for(tmp_path, checkpoint_every=5)
+    with TestClient(create_app(settings)) as client:
+        sid = client.post("/v1/scenes", files=parts).json()["id"]
+        t0 = time.time()
+        while client.get(f"/v1/scenes/{sid}").json()["progress"] < 0.3:
+            assert time.time() - t0 < 180
+            time.sleep(0.1)
+    checkpoint = tmp_path / "storage" / sid / "checkpoint.pt"
+    checkpoint.write_bytes(checkpoint.read_bytes()[:1000])  # torn
+    builds: list[float] = []  # seconds of each model build
+
+    class TimedTrainer(cmc.method.training.Trainer):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            t = time.perf_counter()
+            super().__init__(*args, **kwargs)
+            builds.append(time.perf_counter() - t)
+
+    monkeypatch.setattr(cmc.method.training, "Trainer", TimedTrainer)
+    with TestClient(create_app(settings)) as client:
+        body = wait_for(client, sid, ("ready", "failed"))
+        assert body["status"] == "ready", body
+        rec = client.app.state.services.store.get(sid)
+    assert rec.stats["train"]["resumed_from_step"] == 0
+    assert len(builds) == 2  # one the checkpoint could not be loaded into, one trained from step 0
+    assert rec.stats["train"]["build_seconds"] == pytest.approx(builds[1], abs=0.05)
 
 
 def test_preview_is_served_while_training_then_the_final_bake(tmp_path: Path) -> None:

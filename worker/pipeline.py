@@ -387,20 +387,26 @@ class _TrainPhase:
         building = f"building the model ({cfg.preset} preset: plane sweep"
         hb.set(status="training", progress=0.0, eta_seconds=self._eta(cfg.steps, built=False), detail=building + ")")
         hb.flush()
-        t0 = time.perf_counter()
+        started = time.perf_counter()  # of the build under way
+        build_s = 0.0  # seconds of the last build (a second follows an unusable checkpoint)
 
         def on_build_progress(share: float) -> None:
             """The build's share done in the detail; in the ETA the rest of it at its pace so far,
             and the steps to come at the step time that pace predicts for this machine."""
-            elapsed = time.perf_counter() - t0
+            elapsed = time.perf_counter() - started
             whole = elapsed / share
             self.step_s = step_s_from_build(whole, *size)
             eta = round(whole - elapsed + self._eta(cfg.steps), 1)
             hb.set(eta_seconds=eta, detail=f"{building}, {100 * share:.0f} % done)")
 
-        make = lambda: Trainer(self.scene, cfg, self.device, on_build_progress)  # noqa: E731
+        def make() -> Trainer:
+            nonlocal started, build_s
+            started = time.perf_counter()
+            trainer = Trainer(self.scene, cfg, self.device, on_build_progress)
+            build_s = time.perf_counter() - started
+            return trainer
+
         self.trainer = _resume(self.ctx, self.rec, make(), make)
-        build_s = time.perf_counter() - t0
         self.step_s = step_s_from_build(build_s, *size)  # until this worker trains a step
         self.resumed_from = resumed = self.trainer.step
         self.stats["train"] = {
