@@ -90,7 +90,7 @@ class TrainConfig:
 
     preset: Preset = "fast"
     steps: int = 300
-    rays_per_view: int = 4096  # rays drawn from every input view per step
+    rays_per_view: int = 6144  # rays drawn from every input view per step
     unseen_rays: int = 2048  # rays drawn at each unseen pose per step
     unseen_poses: int = 1  # unseen poses per step
     unseen_jitter: float = 0.1  # std of the unseen-pose centre jitter, in mean baselines
@@ -151,7 +151,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       the photo sees past an outline is background, not a smear of the occluder), the colour
       gradients each MPI gets from the other input views' rays scaled by 0.1
       (``loss.cross_view_colour``: its colours stay those of its own photo, its geometry answers
-      to every view), 4096 rays per input view and step, the 56 planes spaced by where a first
+      to every view), 6144 rays per input view and step, the 56 planes spaced by where a first
       plane sweep finds the surfaces (``model.plane_density_floor=0.25``: a quarter of them
       uniform in disparity, the rest following the cube root of the sweep's density) over the
       depths where that sweep finds the scene, not all of near..far (``model.fit_depth_range``:

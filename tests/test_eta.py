@@ -105,7 +105,7 @@ def test_fit_reports_the_phase_aware_estimate(monkeypatch) -> None:
 
 def test_cost_model_follows_the_config() -> None:
     fast = preset_config("fast")
-    assert full_cost_ratio(fast, 3) == pytest.approx((3 * 4096 + 2048) / (3 * 4096))
+    assert full_cost_ratio(fast, 3) == pytest.approx((3 * 6144 + 2048) / (3 * 6144))
     silent = replace(fast, loss=replace(fast.loss, lambda_ac=0.0, lambda_dc=0.0))
     assert full_cost_ratio(silent, 3) == 1.0  # no unseen poses are rendered then
     for steps in (1, 7, 10, 400):

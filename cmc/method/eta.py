@@ -38,7 +38,7 @@ REFERENCE_STEP_S = 0.72
 # needs torch to import; the pose-estimation worker does not load it). tests/test_eta.py checks
 # that they agree.
 PRESET_STEPS = {"fast": 300, "paper": 20000}
-FAST_RAYS_PER_VIEW = 4096
+FAST_RAYS_PER_VIEW = 6144
 
 
 def first_full_step(cfg: TrainConfig) -> int:
