@@ -30,9 +30,9 @@ POSE_REPORTS = {
     "trex": "poses_e2e_trex_exif_wide.json",
 }
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
-PROFILE_REPORT = "profile_job_fern_cpu.json"
+PROFILE_REPORT = "profile_job_fern_cpu_rays6144.json"
 PREVIEW_REPORT = "preview_quality_fern_half.json"
-TIMELINE_REPORT = "job_timeline_fern_cpu_eta_bake.json"
+TIMELINE_REPORT = "job_timeline_fern_cpu_rays6144.json"
 BUILD_REPORT = "model_build_time_fern_fused.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
 SERVICE_REPORT = "service_cpu.json"

@@ -29,7 +29,7 @@ from cmc.geometry.camera_paths import orbit_poses
 from cmc.method.training import Progress, Trainer
 from cmc.serving.baking import BakedScene, bake
 
-# What the summary's numbers mean and what good looks like (the recorded run: bench/reports/history/demo_cpu.json).
+# What the summary's numbers mean and what good looks like (the recorded run: bench/reports/history/demo_cpu_rays6144.json).
 READING = {
     "novel_view_psnr_db": "the novel view against the exact ground truth, in dB: the default run (300 steps, "
     "240x180) scores about 36.1; above 30 the two are hard to tell apart, 25-30 shows soft or slightly doubled "
@@ -37,7 +37,7 @@ READING = {
     "novel_depth_median_abs_rel_error": "median |z - z_true| / z_true of the novel view's depth: about 0.004 "
     "(0.4 %) in the default run; above 0.05 surfaces sit on the wrong planes",
     "novel_depth.png": "inverse depth, yellow near to blue far; the strip below maps colours to depths in scene units",
-    "train_seconds": "about 120-165 s for 300 steps on 2 CPU cores",
+    "train_seconds": "about 165 s for 300 steps on 2 CPU cores",
 }
 
 
