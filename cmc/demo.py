@@ -29,7 +29,8 @@ from cmc.geometry.camera_paths import orbit_poses
 from cmc.method.training import Progress, Trainer
 from cmc.serving.baking import BakedScene, bake
 
-# What the summary's numbers mean and what good looks like (the recorded run: bench/reports/history/demo_cpu_rays6144.json).
+# What the summary's numbers mean and what good looks like (the recorded run:
+# bench/reports/history/demo_cpu_rays6144.json).
 READING = {
     "novel_view_psnr_db": "the novel view against the exact ground truth, in dB: the default run (300 steps, "
     "240x180) scores about 36.1; above 30 the two are hard to tell apart, 25-30 shows soft or slightly doubled "

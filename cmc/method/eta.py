@@ -14,8 +14,10 @@ speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2
 
 * :data:`REFERENCE_POSES_S`: structure from motion, 12.7 s (median of 3, bench/reports/history/poses_fern.md).
 * :data:`REFERENCE_STEP_S`: a training step, 0.72 s in ``cmc serve`` (bench/reports/history/job_timeline_fern_cpu.json:
-  the train phase of a 300-step job took 159 s more than that of an 80-step one). A GPU trains
-  much faster: until training has run a step, a job's estimate is pessimistic there.
+  the train phase of a 300-step job took 159 s more than that of an 80-step one, with 4096 rays
+  a view; with the preset's 6144, 0.74 s on the faster machine of
+  bench/reports/current/job_timeline_fern_cpu_rays6144.json). A GPU trains much faster: until
+  training has run a step, a job's estimate is pessimistic there.
 * The model build (the plane sweeps), in training steps (:func:`build_steps`), and baking
   (:func:`bake_steps`): modelled from the same jobs. A job that bakes a preview measures its own
   bake speed there (:func:`final_bake_s`), and until it has trained a step it takes its step time
@@ -60,8 +62,9 @@ def bake_steps(width: int, height: int, margin: float, num_views: int, rays_per_
 
     Per plane of every MPI the bake evaluates the field once at each of ``margin^2 * W * H``
     texels and writes it; a step evaluates it at ``num_views * rays_per_view`` samples, forward and
-    backward. Fern at 504x378, fast preset (4096 rays): about 15 steps (9-11 s in ``cmc serve``,
-    publishing included, bench/reports/history/job_timeline_fern_cpu.json).
+    backward. Fern at 504x378 with 4096 rays a view: about 15 steps (9-11 s in ``cmc serve``,
+    publishing included, bench/reports/history/job_timeline_fern_cpu.json); with the fast
+    preset's 6144, about 10.
     """
     return margin**2 * width * height / (1.5 * num_views * rays_per_view)
 
