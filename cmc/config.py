@@ -109,17 +109,22 @@ class TrainConfig:
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> TrainConfig:
-        """The inverse of :meth:`to_dict` (lists back to tuples, nested groups to dataclasses)."""
+        """The inverse of :meth:`to_dict` (lists back to tuples, nested groups to dataclasses).
+        A setting missing from ``d`` (a configuration saved before it existed) raises ConfigError."""
         return _dataclass_from_dict(TrainConfig, d)
 
 
-def _dataclass_from_dict(cls: type, d: dict[str, Any]) -> Any:
+def _dataclass_from_dict(cls: type, d: dict[str, Any], prefix: str = "") -> Any:
     hints = get_type_hints(cls)
     values = {}
     for f in fields(cls):
+        if f.name not in d:
+            raise ConfigError(
+                f"the configuration has no setting {prefix + f.name!r}: it was saved by an older version of cmc"
+            )
         v = d[f.name]
         if is_dataclass(hints[f.name]):
-            v = _dataclass_from_dict(hints[f.name], v)
+            v = _dataclass_from_dict(hints[f.name], v, f"{prefix}{f.name}.")
         elif isinstance(v, list):
             v = tuple(v)
         values[f.name] = v

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from cmc.config import preset_config, with_settings
+from cmc.config import TrainConfig, preset_config, with_settings
 from cmc.data.datasets import WIDE_SCENES, render_layers, synthetic_scene, wide_baseline_split
+from cmc.errors import ConfigError
 from cmc.eval.metrics import psnr
 from cmc.geometry.cameras import pixel_rays
 from cmc.method.losses import alpha_and_transmittance, alpha_entropy, distortion
@@ -171,6 +172,15 @@ def test_with_settings_parses_and_rejects():
         with_settings(cfg, ["model.num_planes=many"])
     with pytest.raises(ValueError, match="KEY=VALUE"):
         with_settings(cfg, ["steps"])
+
+
+def test_config_round_trips_and_names_a_setting_an_old_save_lacks():
+    cfg = with_settings(preset_config("fast"), ["model.pyramid.scales=[1,0.5]", "steps=7"])
+    assert TrainConfig.from_dict(cfg.to_dict()) == cfg
+    old = cfg.to_dict()
+    del old["model"]["sweep"]["window"]
+    with pytest.raises(ConfigError, match="no setting 'model.sweep.window'.*older version"):
+        TrainConfig.from_dict(old)
 
 
 def test_tilted_layer_depth_is_the_ray_plane_intersection():
