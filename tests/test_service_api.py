@@ -42,7 +42,7 @@ from service.limits import MemoryLimiter, RedisLimiter
 from service.negotiation import negotiate
 from service.quotas import RECORD_HOLD_S
 from service.schemas import RenderCamera
-from service.settings import load_settings
+from service.settings import Settings, load_settings
 from worker.pipeline import PREVIEW_TEXEL_SCALE
 
 
@@ -914,16 +914,23 @@ def test_delete_cancels_a_running_job_within_seconds(tmp_path: Path) -> None:
         assert store.get(sid, include_deleted=True).status == "cancelled"
 
 
-def test_unfinished_job_resumes_after_a_restart(tmp_path: Path) -> None:
+def _stopped_mid_training(settings: Settings) -> str:
+    """A 40-step job's id, its app stopped once the job had passed 30 % of its training (the job
+    checkpointed and stays unfinished)."""
     parts, _, _ = synthetic_upload(steps=40)
-    settings = settings_for(tmp_path, checkpoint_every=5)
     with TestClient(create_app(settings)) as client:
         sid = client.post("/v1/scenes", files=parts).json()["id"]
         t0 = time.time()
         while client.get(f"/v1/scenes/{sid}").json()["progress"] < 0.3:
             assert time.time() - t0 < 180
             time.sleep(0.1)
-    # the app stopped mid-training: the job checkpointed and stays unfinished
+    return sid
+
+
+def test_unfinished_job_resumes_after_a_restart(tmp_path: Path) -> None:
+    settings = settings_for(tmp_path, checkpoint_every=5)
+    t0 = time.time()
+    sid = _stopped_mid_training(settings)
     with TestClient(create_app(settings)) as client:
         details = set()
         body = client.get(f"/v1/scenes/{sid}").json()
@@ -948,14 +955,8 @@ def test_unusable_checkpoint_trains_from_step_zero(tmp_path: Path, monkeypatch: 
     is that build's alone."""
     import cmc.method.training
 
-    parts, _, _ = synthetic_upload(steps=40)
     settings = settings_for(tmp_path, checkpoint_every=5)
-    with TestClient(create_app(settings)) as client:
-        sid = client.post("/v1/scenes", files=parts).json()["id"]
-        t0 = time.time()
-        while client.get(f"/v1/scenes/{sid}").json()["progress"] < 0.3:
-            assert time.time() - t0 < 180
-            time.sleep(0.1)
+    sid = _stopped_mid_training(settings)
     checkpoint = tmp_path / "storage" / sid / "checkpoint.pt"
     checkpoint.write_bytes(checkpoint.read_bytes()[:1000])  # torn
     builds: list[float] = []  # seconds of each model build
