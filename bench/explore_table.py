@@ -45,7 +45,7 @@ ROUNDS = [
         "synthetic scene posts (`--scenes '' --synthetic posts --workers 2`)",
     ),
 ]
-ADOPTED = "sgm2_steps300"
+ADOPTED = {"sgm2_steps300", "rays6144"}  # the variants the preset took up
 
 
 def _load(name: str) -> list[dict]:
@@ -100,7 +100,7 @@ def main() -> None:
         for v in variants:
             by_scene = {r["scene"]: r for r in recs if r["variant"] == v}
             settings = " ".join(f"`{s}`" for s in next(iter(by_scene.values()))["settings"]) or "(the preset)"
-            label = f"**{v}** (adopted)" if v == ADOPTED else v
+            label = f"**{v}** (adopted)" if v in ADOPTED else v
             cells = [_cell(by_scene.get(s), base[s], "val") for s in SCENES]
             cells += [_cell(by_scene.get(s), base[s], "test") for s in SCENES]
             out.append(f"| {label} | {settings} | " + " | ".join(cells) + " |")
