@@ -91,11 +91,18 @@ class TrainConfig:
     preset: Preset = "fast"
     steps: int = 300
     rays_per_view: int = 6144  # rays drawn from every input view per step
+    # How a step draws an input view's rays: "uniform" (independent random pixels), "stratified"
+    # (one random pixel in each of rays_per_view equal runs of the row-major pixel order: every
+    # part of the photo gets its share each step), "permutation" (successive slices of a random
+    # order of all pixels: every pixel is drawn once before any is drawn again).
+    ray_sampling: Literal["uniform", "stratified", "permutation"] = "uniform"
     unseen_rays: int = 2048  # rays drawn at each unseen pose per step
     unseen_poses: int = 1  # unseen poses per step
     unseen_jitter: float = 0.1  # std of the unseen-pose centre jitter, in mean baselines
     lr: float = 0.05  # Adam learning rate at step 0 ...
     lr_final: float = 0.005  # ... decaying exponentially to this at the last step
+    base_lr_factor: float = 1.0  # factor on the learning rate of the pyramid field's base colours
+    adam_beta2: float = 0.999  # Adam's decay of the squared-gradient average
     # A plane sample weighing less than this in its ray's colour passes no gradient to its colour
     # (cmc.mpi.rendering.composite): the backward pass skips those texels, most of a step's.
     colour_grad_min_weight: float = 1e-3

@@ -37,6 +37,7 @@ from cmc.method.losses import (
     robust_depth_consistency,
 )
 from cmc.method.model import CMCModel
+from cmc.mpi.fields import PyramidPlaneField
 from cmc.mpi.rendering import render_ray_groups
 
 CHECKPOINT_VERSION = 1
@@ -146,12 +147,18 @@ class Trainer:
         self.device = torch.device(device)
         torch.manual_seed(cfg.seed)
         self.model = CMCModel(scene, cfg.model, self.device, on_build_progress)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, fused=True)
+        base = [f.base for f in self.model.fields if isinstance(f, PyramidPlaneField)]
+        rest = [p for p in self.model.parameters() if all(p is not b for b in base)]
+        groups = [{"params": base, "lr_factor": cfg.base_lr_factor}, {"params": rest, "lr_factor": 1.0}]
+        self.optimizer = torch.optim.Adam(
+            [g for g in groups if g["params"]], lr=cfg.lr, betas=(0.9, cfg.adam_beta2), fused=True
+        )
         self.images = torch.as_tensor(scene.images, device=self.device).reshape(len(scene), -1, 3)
         self.K = torch.as_tensor(scene.cameras.K, dtype=torch.float32, device=self.device)
         self.poses = torch.as_tensor(scene.cameras.world_from_cam, dtype=torch.float32, device=self.device)
         self.depth_scale = self.model.far - self.model.near
         self.step = 0
+        self._orders: dict[tuple[int, int], torch.Tensor] = {}
 
     # -- one step ---------------------------------------------------------------------------
 
@@ -165,6 +172,35 @@ class Trainer:
         idx = torch.randint(0, w * h, (n,), generator=gen).sort().values.to(self.device)
         uv = torch.stack([idx % w, idx // w], -1).float() + 0.5
         return idx, uv
+
+    def _input_pixels(self, gen: torch.Generator, view: int, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The pixels input view ``view`` draws at step ``step`` (``cfg.ray_sampling``), as
+        :meth:`_random_pixels` returns them."""
+        n, kind = self.cfg.rays_per_view, self.cfg.ray_sampling
+        if kind == "uniform":
+            return self._random_pixels(gen, n)
+        w, h = self.scene.cameras.width, self.scene.cameras.height
+        if kind == "stratified":
+            edges = torch.arange(n + 1, dtype=torch.float64) * (w * h / n)
+            u = torch.rand(n, generator=gen, dtype=torch.float64)
+            idx = (edges[:-1] + u * (edges[1:] - edges[:-1])).long().clamp(max=w * h - 1)
+        else:
+            start = step * n
+            first, last = start // (w * h), (start + n - 1) // (w * h)
+            order = torch.cat([self._pixel_order(view, e) for e in range(first, last + 1)])
+            idx = order[start - first * w * h :][:n].sort().values
+        idx = idx.to(self.device)
+        return idx, torch.stack([idx % w, idx // w], -1).float() + 0.5
+
+    def _pixel_order(self, view: int, epoch: int) -> torch.Tensor:
+        """A random order of input view ``view``'s pixels, the ``epoch``-th (seeded by the run's
+        seed, the view and the epoch alone)."""
+        key = (view, epoch)
+        if key not in self._orders:
+            gen = torch.Generator().manual_seed((self.cfg.seed * 1_000_003 + view) * 1_000_003 + epoch)
+            self._orders = {k: v for k, v in self._orders.items() if k[1] >= epoch - 1}
+            self._orders[key] = torch.randperm(self.scene.cameras.width * self.scene.cameras.height, generator=gen)
+        return self._orders[key]
 
     def _colour_grads(self, mpi: int) -> list[float]:
         """Factor on the colour gradients of MPI ``mpi`` from each input view's rays."""
@@ -181,7 +217,7 @@ class Trainer:
         # Target cameras of this step: every input view, then the unseen poses.
         groups, targets = [], []
         for j in range(len(self.scene)):
-            idx, uv = self._random_pixels(gen, cfg.rays_per_view)
+            idx, uv = self._input_pixels(gen, j, step)
             groups.append((self.K[j], self.poses[j], uv))
             targets.append(self.images[j][idx])
         use_unseen = full and (lc.lambda_ac > 0 or lc.lambda_dc > 0)
@@ -227,7 +263,7 @@ class Trainer:
 
     def train_step(self) -> dict[str, float]:
         for g in self.optimizer.param_groups:
-            g["lr"] = lr_at(self.cfg, self.step)
+            g["lr"] = lr_at(self.cfg, self.step) * g["lr_factor"]
         self.optimizer.zero_grad(set_to_none=True)
         losses = self.compute_losses(self.step)
         if not torch.isfinite(losses.total):
