@@ -91,18 +91,16 @@ class TrainConfig:
     preset: Preset = "fast"
     steps: int = 300
     rays_per_view: int = 6144  # rays drawn from every input view per step
-    # How a step draws an input view's rays: "uniform" (independent random pixels), "stratified"
-    # (one random pixel in each of rays_per_view equal runs of the row-major pixel order: every
-    # part of the photo gets its share each step), "permutation" (successive slices of a random
-    # order of all pixels: every pixel is drawn once before any is drawn again).
-    ray_sampling: Literal["uniform", "stratified", "permutation"] = "uniform"
+    # How a step draws an input view's rays: "uniform" (independent random pixels) or
+    # "permutation" (successive slices of a random order of all the photo's pixels: every pixel is
+    # drawn once before any is drawn again, so every texel of the photo's own plane textures gets
+    # its share of updates).
+    ray_sampling: Literal["uniform", "permutation"] = "permutation"
     unseen_rays: int = 2048  # rays drawn at each unseen pose per step
     unseen_poses: int = 1  # unseen poses per step
     unseen_jitter: float = 0.1  # std of the unseen-pose centre jitter, in mean baselines
-    lr: float = 0.05  # Adam learning rate at step 0 ...
+    lr: float = 0.04  # Adam learning rate at step 0 ...
     lr_final: float = 0.005  # ... decaying exponentially to this at the last step
-    base_lr_factor: float = 1.0  # factor on the learning rate of the pyramid field's base colours
-    adam_beta2: float = 0.999  # Adam's decay of the squared-gradient average
     # A plane sample weighing less than this in its ray's colour passes no gradient to its colour
     # (cmc.mpi.rendering.composite): the backward pass skips those texels, most of a step's.
     colour_grad_min_weight: float = 1e-3
@@ -163,7 +161,9 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       the photo sees past an outline is background, not a smear of the occluder), the colour
       gradients each MPI gets from the other input views' rays scaled by 0.1
       (``loss.cross_view_colour``: its colours stay those of its own photo, its geometry answers
-      to every view), 6144 rays per input view and step, the 56 planes spaced by where a first
+      to every view), 6144 rays per input view and step drawn as slices of a random order of
+      the photo's pixels (``ray_sampling="permutation"``), Adam's learning rate 0.04 falling to
+      0.005, the 56 planes spaced by where a first
       plane sweep finds the surfaces (``model.plane_density_floor=0.25``: a quarter of them
       uniform in disparity, the rest following the cube root of the sweep's density) over the
       depths where that sweep finds the scene, not all of near..far (``model.fit_depth_range``:
@@ -178,6 +178,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
             preset="paper",
             steps=20000,
             rays_per_view=1024,
+            ray_sampling="uniform",
             unseen_rays=1024,
             lr=5e-3,
             lr_final=1e-4,

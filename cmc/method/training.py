@@ -1,8 +1,9 @@
 """Training loop: losses per step, progress hooks, cooperative cancellation, exact resume.
 
-Randomness of step ``s`` (ray choice, unseen pose) is drawn from generators seeded with
-``(seed, s)`` alone, so a run resumed from a checkpoint at step s makes exactly the draws an
-uninterrupted run makes: resuming reproduces the uninterrupted result to float tolerance.
+Randomness of step ``s`` (ray choice, unseen pose) depends on ``(seed, s)`` alone (generators
+seeded with them, or with the seed and the pixel order's number that step ``s`` reads), so a run
+resumed from a checkpoint at step s makes exactly the draws an uninterrupted run makes: resuming
+reproduces the uninterrupted result to float tolerance.
 
 Unseen poses (for L_ac, L_dc): a random convex combination of the input camera centres plus
 Gaussian jitter (``unseen_jitter`` mean baselines), with the same weighted mean of the input
@@ -37,7 +38,6 @@ from cmc.method.losses import (
     robust_depth_consistency,
 )
 from cmc.method.model import CMCModel
-from cmc.mpi.fields import PyramidPlaneField
 from cmc.mpi.rendering import render_ray_groups
 
 CHECKPOINT_VERSION = 1
@@ -147,12 +147,7 @@ class Trainer:
         self.device = torch.device(device)
         torch.manual_seed(cfg.seed)
         self.model = CMCModel(scene, cfg.model, self.device, on_build_progress)
-        base = [f.base for f in self.model.fields if isinstance(f, PyramidPlaneField)]
-        rest = [p for p in self.model.parameters() if all(p is not b for b in base)]
-        groups = [{"params": base, "lr_factor": cfg.base_lr_factor}, {"params": rest, "lr_factor": 1.0}]
-        self.optimizer = torch.optim.Adam(
-            [g for g in groups if g["params"]], lr=cfg.lr, betas=(0.9, cfg.adam_beta2), fused=True
-        )
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, fused=True)
         self.images = torch.as_tensor(scene.images, device=self.device).reshape(len(scene), -1, 3)
         self.K = torch.as_tensor(scene.cameras.K, dtype=torch.float32, device=self.device)
         self.poses = torch.as_tensor(scene.cameras.world_from_cam, dtype=torch.float32, device=self.device)
@@ -176,20 +171,16 @@ class Trainer:
     def _input_pixels(self, gen: torch.Generator, view: int, step: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The pixels input view ``view`` draws at step ``step`` (``cfg.ray_sampling``), as
         :meth:`_random_pixels` returns them."""
-        n, kind = self.cfg.rays_per_view, self.cfg.ray_sampling
-        if kind == "uniform":
+        n = self.cfg.rays_per_view
+        if self.cfg.ray_sampling == "uniform":
             return self._random_pixels(gen, n)
         w, h = self.scene.cameras.width, self.scene.cameras.height
-        if kind == "stratified":
-            edges = torch.arange(n + 1, dtype=torch.float64) * (w * h / n)
-            u = torch.rand(n, generator=gen, dtype=torch.float64)
-            idx = (edges[:-1] + u * (edges[1:] - edges[:-1])).long().clamp(max=w * h - 1)
-        else:
-            start = step * n
-            first, last = start // (w * h), (start + n - 1) // (w * h)
-            order = torch.cat([self._pixel_order(view, e) for e in range(first, last + 1)])
-            idx = order[start - first * w * h :][:n].sort().values
-        idx = idx.to(self.device)
+        # Pixels step * n ... step * n + n - 1 of the concatenated orders: one order per w * h
+        # draws, the slice crossing into the next order at the end of one.
+        start = step * n
+        first, last = start // (w * h), (start + n - 1) // (w * h)
+        order = torch.cat([self._pixel_order(view, e) for e in range(first, last + 1)])
+        idx = order[start - first * w * h :][:n].sort().values.to(self.device)
         return idx, torch.stack([idx % w, idx // w], -1).float() + 0.5
 
     def _pixel_order(self, view: int, epoch: int) -> torch.Tensor:
@@ -263,7 +254,7 @@ class Trainer:
 
     def train_step(self) -> dict[str, float]:
         for g in self.optimizer.param_groups:
-            g["lr"] = lr_at(self.cfg, self.step) * g["lr_factor"]
+            g["lr"] = lr_at(self.cfg, self.step)
         self.optimizer.zero_grad(set_to_none=True)
         losses = self.compute_losses(self.step)
         if not torch.isfinite(losses.total):
