@@ -44,8 +44,20 @@ ROUNDS = [
         "rays8192_steps150 and rays12288_steps150 (`--workers 6`) beside base and rays8192_steps225 on the "
         "synthetic scene posts (`--scenes '' --synthetic posts --workers 2`)",
     ),
+    (
+        "explore_gpu_round6.jsonl",
+        "python3 bench/gpudata.py unpack; CMC_GIT_COMMIT=9d62d55 PYTHONPATH=. CMC_LPIPS_DIR=.gpudata/weights "
+        "python3 bench/explore_gpu.py bench/reports/history/explore_gpu_round6_variants.json $OUT "
+        "--data .gpudata/llff --scenes fern,room,trex --lpips --workers 9 --seconds 330 --grace 200",
+        "how a step draws its rays (stratified over the photo, or slices of a random order of its pixels: "
+        "each pixel once before any twice), the base colours' learning rate (a factor on it; "
+        "`base_lr_factor`, since deleted), Adam's beta2 (`adam_beta2`, since deleted), a lower learning rate, "
+        "more rays at the unseen pose. Three calls on one warm machine: the command below with the first "
+        "nine variants, then with the next three and the last three (`--seconds 20`; the variants file "
+        "holds all fifteen)",
+    ),
 ]
-ADOPTED = {"sgm2_steps300", "rays6144"}  # the variants the preset took up
+ADOPTED = {"sgm2_steps300", "rays6144", "permutation_lr004"}  # the variants the preset took up
 
 
 def _load(name: str) -> list[dict]:

@@ -200,3 +200,25 @@ def test_faint_samples_pass_no_gradient_to_their_colours(scene):
 
     assert changed(tiny(colour_grad_min_weight=1.5)) == (False, True)
     assert changed(tiny(colour_grad_min_weight=0.0)) == (True, True)
+
+
+@pytest.mark.parametrize("rays", [256, 1000])
+def test_permutation_sampling_draws_every_pixel_once_before_any_twice(scene, rays):
+    """``ray_sampling="permutation"``: the draws of successive steps are slices of a random order
+    of a photo's W * H pixels, then of the next order (256 rays: 12 steps per order; 1000 rays: a
+    step's slice crosses from one order into the next); each view has its own orders, and a fresh
+    trainer draws the same pixels at the same step (an exact resume)."""
+    cfg = tiny(rays_per_view=rays)
+    assert cfg.ray_sampling == "permutation"  # the fast preset's
+    trainer, fresh = Trainer(scene, cfg), Trainer(scene, cfg)
+    gen = torch.Generator()
+    steps = 2 * W * H // rays
+    draws = [trainer._input_pixels(gen, 0, s)[0] for s in range(steps)]
+    counts = torch.bincount(torch.cat(draws), minlength=W * H)
+    first_order = torch.bincount(torch.cat(draws[: W * H // rays]), minlength=W * H)
+    assert first_order.max() == 1 and counts.min() >= 1 and counts.max() <= 2
+    assert all(bool((d.diff() >= 0).all()) and len(d) == rays for d in draws)  # row-major order
+    assert torch.equal(fresh._input_pixels(gen, 0, steps - 1)[0], draws[-1])
+    assert not torch.equal(trainer._input_pixels(gen, 1, 0)[0], draws[0])
+    idx, uv = draws[0], trainer._input_pixels(gen, 0, 0)[1]
+    assert torch.equal(uv, torch.stack([idx % W, idx // W], -1).float() + 0.5)
