@@ -85,7 +85,7 @@ def view_quality() -> list[str]:
         "../shared/datasets/llff --scenes S --views test --out bench/reports/current/REPORT`; the validation",
         "views (`--views val`: the images neither trained on nor tested, on which settings are chosen) in",
         "the last column. Training seconds depend on the day's machine: the 2-core machines differ by up",
-        "to 1.7x (the same `fast` trained fern in 225 s on one and 350 s on another, bench/PROFILE.md).",
+        "to 1.7x (a fern training of the same cost a step took 225 s on one, 350 s on another: bench/PROFILE.md).",
         "",
         "| scene | PSNR / SSIM / LPIPS-vgg | target (issue 38) | met | train s | report | validation views |",
         "|---|---|---|---|---|---|---|",
