@@ -164,9 +164,13 @@ class Trainer:
         gradients stay in the CPU's caches (cmc.mpi.plane_sampling samples about twice as fast so,
         in a one-off timing on fern's finest level)."""
         w, h = self.scene.cameras.width, self.scene.cameras.height
-        idx = torch.randint(0, w * h, (n,), generator=gen).sort().values.to(self.device)
-        uv = torch.stack([idx % w, idx // w], -1).float() + 0.5
-        return idx, uv
+        return self._in_row_major_order(torch.randint(0, w * h, (n,), generator=gen))
+
+    def _in_row_major_order(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pixel indices ``idx`` sorted (row-major order) on the device, and their centre coordinates."""
+        w = self.scene.cameras.width
+        idx = idx.sort().values.to(self.device)
+        return idx, torch.stack([idx % w, idx // w], -1).float() + 0.5
 
     def _input_pixels(self, gen: torch.Generator, view: int, step: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The pixels input view ``view`` draws at step ``step`` (``cfg.ray_sampling``), as
@@ -174,14 +178,14 @@ class Trainer:
         n = self.cfg.rays_per_view
         if self.cfg.ray_sampling == "uniform":
             return self._random_pixels(gen, n)
-        w, h = self.scene.cameras.width, self.scene.cameras.height
-        # Pixels step * n ... step * n + n - 1 of the concatenated orders: one order per w * h
-        # draws, the slice crossing into the next order at the end of one.
-        start = step * n
-        first, last = start // (w * h), (start + n - 1) // (w * h)
-        order = torch.cat([self._pixel_order(view, e) for e in range(first, last + 1)])
-        idx = order[start - first * w * h :][:n].sort().values.to(self.device)
-        return idx, torch.stack([idx % w, idx // w], -1).float() + 0.5
+        # Draws step * n ... step * n + n - 1 of the orders laid end to end (w * h draws each): the
+        # part of each order the slice covers, crossing into the next at the end of one.
+        size, start = self.scene.cameras.width * self.scene.cameras.height, step * n
+        parts = [
+            self._pixel_order(view, e)[max(start - e * size, 0) : min(start + n - e * size, size)]
+            for e in range(start // size, (start + n - 1) // size + 1)
+        ]
+        return self._in_row_major_order(torch.cat(parts))
 
     def _pixel_order(self, view: int, epoch: int) -> torch.Tensor:
         """A random order of input view ``view``'s pixels, the ``epoch``-th (seeded by the run's
