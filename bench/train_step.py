@@ -78,14 +78,23 @@ torch.save(trainer.model.state_dict(), path)
 """
 
 
-def time_tree(tree: Path, data: str, steps: int, state: str) -> dict[str, float]:
+def run_in_tree(tree: Path, script: str, *args: str) -> dict[str, float]:
+    """Run ``script`` (Python source) with ``args`` in a fresh process importing the ``cmc`` of
+    ``tree``; the JSON object its last line of output prints."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
-    done = subprocess.run(
-        [sys.executable, "-c", MEASURE, data, str(steps), state], cwd=tree, env=env, capture_output=True, text=True
-    )
+    done = subprocess.run([sys.executable, "-c", script, *args], cwd=tree, env=env, capture_output=True, text=True)
     if done.returncode:
         raise SystemExit(f"timing {tree} failed:\n{done.stderr}")
     return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def machine() -> dict[str, object]:
+    return {
+        "cpu": platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+    }
 
 
 def main() -> None:
@@ -112,9 +121,8 @@ def main() -> None:
         try:
             for r in range(args.rounds):
                 for name, tree in (("before", before_tree), ("after", ROOT)):
-                    rounds[name].append(
-                        time_tree(tree, data, args.steps, str(Path(args.state).resolve()) if args.state else "")
-                    )
+                    state = str(Path(args.state).resolve()) if args.state else ""
+                    rounds[name].append(run_in_tree(tree, MEASURE, data, str(args.steps), state))
                     print(f"round {r + 1}: {name} {rounds[name][-1]}", flush=True)
         finally:
             git("worktree", "remove", "--force", str(before_tree))
@@ -126,12 +134,7 @@ def main() -> None:
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "git_commit": git_commit(),
         "before_commit": git("rev-parse", "--short", args.before),
-        "machine": {
-            "cpu": platform.processor() or platform.machine(),
-            "cores": os.cpu_count(),
-            "python": platform.python_version(),
-            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
-        },
+        "machine": machine(),
         "steps_per_process": args.steps,
         "start": args.state or "the preset without its sweep",
         "rounds": rounds,

@@ -2,22 +2,25 @@
 
 from __future__ import annotations
 
+import copy
 import json
 from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from cmc.config import preset_config
 from cmc.data.datasets import synthetic_scene
 from cmc.eval.metrics import psnr
-from cmc.geometry.planes import blend_weights, mean_baseline, sample_virtual_pose
+from cmc.geometry.cameras import pixel_rays
+from cmc.geometry.planes import blend_weights, mean_baseline, sample_virtual_pose, texel_grid
 from cmc.method.training import Trainer
 from cmc.mpi._reference import render_texture_image_reference
-from cmc.mpi.fields import PyramidPlaneField
+from cmc.mpi.fields import MPIField, PyramidPlaneField
 from cmc.mpi.rendering import blend
-from cmc.serving.baking import BakedFormatError, BakedScene, bake, quantize_planes
+from cmc.serving.baking import BakedFormatError, BakedScene, bake, bake_textures, quantize_planes
 
 W, H = 64, 48
 
@@ -83,7 +86,7 @@ def test_manifest_describes_the_atlases(trained, tmp_path):
     _, model = trained
     reported = []
     out = bake(model, tmp_path / "b", on_progress=lambda done, total: reported.append((done, total)))
-    assert reported == [(1, 3), (2, 3), (3, 3)]  # after each MPI's atlas is written
+    assert reported == [(1, 3), (2, 3), (3, 3)]  # after each MPI is evaluated
     m = json.loads((out / "mpi.json").read_text())
     assert m["format"] == "cmc-mpi" and m["version"] == 1 and m["convention"] == "opencv"
     # How renders sample colour is the field's: `fast` samples its base colours bicubically,
@@ -100,7 +103,31 @@ def test_manifest_describes_the_atlases(trained, tmp_path):
     assert len(m["mpis"]) == 3
     for e in m["mpis"]:
         assert len(e["depths"]) == 10 and e["depths"] == sorted(e["depths"])
-        assert (out / e["atlas"]).exists()
+        atlas = Image.open(out / e["atlas"])  # complete when the bake returns
+        assert atlas.size == (e["grid"][1] * e["tile"][1], e["grid"][0] * e["tile"][0])
+        atlas.load()
+
+
+def test_texel_grid_evaluation_matches_its_slow_twin(trained):
+    """What a bake evaluates (``on_texel_grid``: for ``fast``'s textures every texel at once in
+    the samplers' layout, the colours taken into the mean response in place) equals the generic
+    evaluation, a few texels at a time through ``forward``, at the plane extent and at the half
+    resolution of a preview bake; the photos' responses made to differ so that the conversion shows."""
+    _, model = trained
+    model = copy.deepcopy(model)
+    if model.exposure is not None:
+        with torch.no_grad():
+            model.exposure.log_gain.copy_(torch.tensor([[0.1, -0.2, 0.0], [0.3, 0.0, -0.1], [0.0, 0.2, 0.1]]))
+            model.exposure.offset.copy_(torch.tensor([[0.02, 0.0, -0.03], [0.0, 0.01, 0.0], [-0.02, 0.0, 0.04]]))
+    for field, frame in zip(model.display_fields(), model.frames, strict=True):
+        for tile in (frame.extent, tuple(s // 2 for s in frame.extent)):
+            fast = bake_textures(field, frame, tile)
+            g = texel_grid(*tile)
+            dirs = pixel_rays(frame.K, frame.pixels_from_grid(g.reshape(-1, 2)))
+            slow = MPIField.on_texel_grid(field, g, frame.plane_z, dirs / dirs.norm(dim=-1, keepdim=True), chunk=500)
+            assert fast.shape == (10, 4, *tile)
+            torch.testing.assert_close(fast, slow, rtol=0, atol=1e-6)
+            assert (fast[-1, 3] == 1).all() and fast.min() >= 0 and fast.max() <= 1
 
 
 def test_missing_or_foreign_folders_are_refused(tmp_path):

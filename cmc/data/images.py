@@ -35,7 +35,7 @@ def to_uint8(image):
         return (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
     import torch
 
-    return (image.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
+    return image.clamp(0, 1).mul_(255).add_(0.5).to(torch.uint8)  # in place on clamp's copy
 
 
 class UnsupportedImageError(SceneError):

@@ -113,10 +113,16 @@ class ExposureResponse(nn.Module):
         or with ``dst`` None into the mean of the photos' responses (what renders show)."""
         if src == dst:
             return rgb
-        shared = (rgb - self.offset[src]) * torch.exp(-self.log_gain[src])
-        if dst is None:
-            return shared * torch.exp(self.log_gain.mean(0)) + self.offset.mean(0)
-        return shared * torch.exp(self.log_gain[dst]) + self.offset[dst]
+        scale, shift = self.affine(src, dst)
+        return rgb * scale + shift
+
+    def affine(self, src: int, dst: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`convert` as ``rgb * scale + shift``: the two [3] per-channel factors."""
+        log_gain, offset = (
+            (self.log_gain.mean(0), self.offset.mean(0)) if dst is None else (self.log_gain[dst], self.offset[dst])
+        )
+        scale = torch.exp(log_gain - self.log_gain[src])
+        return scale, offset - self.offset[src] * scale
 
 
 class MeanResponseField(MPIField):
@@ -132,6 +138,14 @@ class MeanResponseField(MPIField):
     def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
         rgb, alpha = self.field(g, plane_z, dirs)
         return self.exposure.convert(rgb, self.view, None).clamp(0, 1), alpha
+
+    @torch.no_grad()
+    def on_texel_grid(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor, chunk: int = 1 << 15):
+        rgba = self.field.on_texel_grid(g, plane_z, dirs, chunk)
+        scale, shift = self.exposure.affine(self.view, None)
+        rgb = rgba[:, :3]  # [D, 3, h, w], converted in place
+        rgb.mul_(scale[:, None, None]).add_(shift[:, None, None]).clamp_(0, 1)
+        return rgba
 
 
 # A fitted depth range replaces the scene's bounds when its disparity span is below this share of

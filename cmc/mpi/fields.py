@@ -49,6 +49,21 @@ class MPIField(nn.Module):
     # "bilinear", or "bicubic" where the field itself samples its colours that way.
     colour_interpolation: str = "bilinear"
 
+    def on_texel_grid(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor, chunk: int = 1 << 15):
+        """The field at every texel of a grid, for a bake: [D, 4, h, w] straight RGBA in [0, 1].
+
+        Shape: g [h, w, 2] texel centres (:func:`cmc.geometry.planes.texel_grid`), the same on
+        every plane; plane_z [D]; dirs [h * w, 3] unit directions each texel is seen along. Here
+        ``forward`` at ``chunk`` texels at a time; fields that ignore the direction do it in one go.
+        """
+        h, w, _ = g.shape
+        flat, D = g.reshape(-1, 2), len(plane_z)
+        parts = []
+        for s in range(0, len(flat), chunk):
+            rgb, alpha = self(flat[s : s + chunk, None].expand(-1, D, 2), plane_z, dirs[s : s + chunk])
+            parts.append(torch.cat([rgb, alpha[..., None]], -1))  # [R, D, 4]
+        return torch.cat(parts).reshape(h, w, D, 4).permute(2, 3, 0, 1).contiguous()
+
 
 def _opaque_back(alpha: torch.Tensor) -> torch.Tensor:
     """Force the last plane (dim -1) to alpha 1 without in-place writes (autograd-safe)."""
@@ -176,23 +191,36 @@ class PyramidPlaneField(MPIField):
             self.levels.append(nn.Parameter(lvl))
 
     def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
-        D = g.shape[1]
+        color, alpha = self._logits(g.transpose(0, 1))
+        return torch.sigmoid(color.permute(2, 0, 1)), _opaque_back(torch.sigmoid(alpha.T))
+
+    @torch.no_grad()
+    def on_texel_grid(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor, chunk: int = 0):
+        """:meth:`MPIField.on_texel_grid` without the directions: every texel at once, in the
+        layout the samplers return (no reordering of the D x h x w samples)."""
+        h, w, _ = g.shape
+        color, alpha = self._logits(g.reshape(1, -1, 2).expand(len(plane_z), -1, 2))
+        alpha = alpha.sigmoid_()
+        alpha[-1] = 1.0  # the back plane opaque
+        return torch.cat([color.sigmoid_(), alpha[:, None]], 1).reshape(-1, 4, h, w)
+
+    def _logits(self, grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Colour logits [D, 3, R] (base plus levels) and alpha logits [D, R] at grid [D, R, 2]."""
+        D = grid.shape[0]
         bounds = plane_group_bounds(D, len(self.base))  # plane k takes base k * G // D
-        if plane_sampling.supported(g, self.parameters()):  # the compiled CPU sampler
-            grid = g.transpose(0, 1)  # [D, R, 2]
+        if plane_sampling.supported(grid, self.parameters()):  # the compiled CPU sampler
             groups = [i for i in range(len(self.base)) for _ in range(bounds[i], bounds[i + 1])]
             base = plane_sampling.sample_planes(grid, groups, [self.base], self.cfg.base_interpolation)
             logits = plane_sampling.sample_planes(grid, range(D), list(self.levels))  # [D, 4, R]
         else:
-            base, logits = self._sample_torch(g, bounds)
+            base, logits = self._sample_torch(grid, bounds)
         color, alpha = logits.split([3, 1], 1)  # type: ignore[union-attr]
-        color, alpha = color + base, alpha.squeeze(1)
-        return torch.sigmoid(color.permute(2, 0, 1)), _opaque_back(torch.sigmoid(alpha.T))
+        return color + base, alpha.squeeze(1)
 
-    def _sample_torch(self, g: torch.Tensor, bounds: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
-        """The base colours [D, 3, R] and the summed levels [D, 4, R] at g [R, D, 2], with
+    def _sample_torch(self, grid: torch.Tensor, bounds: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The base colours [D, 3, R] and the summed levels [D, 4, R] at grid [D, R, 2], with
         ``grid_sample`` (any device; :mod:`cmc.mpi.plane_sampling` computes the same on the CPU)."""
-        grid = g.permute(1, 0, 2)[:, None]  # [D, 1, R, 2]
+        grid = grid[:, None]  # [D, 1, R, 2]
         base = torch.cat(
             [
                 F.grid_sample(

@@ -37,9 +37,10 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -70,26 +71,16 @@ MANIFEST = "mpi.json"
 
 
 @torch.no_grad()
-def bake_textures(
-    field: MPIField, frame: MPIFrame, tile: tuple[int, int] | None = None, chunk: int = 1 << 15
-) -> torch.Tensor:
+def bake_textures(field: MPIField, frame: MPIFrame, tile: tuple[int, int] | None = None) -> torch.Tensor:
     """Evaluate a field on a texel grid: [D, 4, h, w] straight RGBA in [0, 1].
 
     Each texel is seen along the reference camera's ray through it (view-dependent fields are
     baked as the reference camera sees them). ``tile`` defaults to the plane extent.
     """
     h, w = tile or frame.extent
-    dev = frame.K.device
-    g = texel_grid(h, w, dev).reshape(-1, 2)
-    dirs = pixel_rays(frame.K, frame.pixels_from_grid(g))
-    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
-    D = frame.depths.shape[0]
-    parts = []
-    for s in range(0, len(g), chunk):
-        gc = g[s : s + chunk, None].expand(-1, D, 2)
-        rgb, alpha = field(gc, frame.plane_z, dirs[s : s + chunk])
-        parts.append(torch.cat([rgb, alpha[..., None]], -1))  # [R, D, 4]
-    return torch.cat(parts).reshape(h, w, D, 4).permute(2, 3, 0, 1).contiguous()
+    g = texel_grid(h, w, frame.K.device)
+    dirs = pixel_rays(frame.K, frame.pixels_from_grid(g.reshape(-1, 2)))
+    return field.on_texel_grid(g, frame.plane_z, dirs / dirs.norm(dim=-1, keepdim=True))
 
 
 def _atlas_grid(num_planes: int) -> tuple[int, int]:
@@ -127,6 +118,39 @@ def quantize_planes(rgba: torch.Tensor, alpha_floor: int = ALPHA_FLOOR) -> np.nd
     return tiles
 
 
+def _bake_mpi(
+    field: MPIField,
+    frame: MPIFrame,
+    scale: float,
+    merge: int,
+    alpha_floor: int,
+    path: Path,
+    writer: ThreadPoolExecutor,
+    written: list[Future],
+) -> dict[str, Any]:
+    """One MPI of :func:`bake`: its planes evaluated and tiled into an atlas, whose PNG
+    ``writer`` encodes to ``path`` (the future appended to ``written``); its manifest entry."""
+    h, w = (max(2, round(s * scale)) for s in frame.extent)
+    rgba, depths = merge_planes(bake_textures(field, frame, (h, w)), frame.depths, merge)
+    D = rgba.shape[0]
+    rows, cols = _atlas_grid(D)
+    atlas = np.zeros((rows * h, cols * w, 4), dtype=np.uint8)
+    tiles = quantize_planes(rgba, alpha_floor)
+    for k in range(D):
+        r, c = divmod(k, cols)
+        atlas[r * h : (r + 1) * h, c * w : (c + 1) * w] = tiles[k]
+    written.append(writer.submit(Image.fromarray(atlas, "RGBA").save, path, compress_level=1))
+    return {
+        "K": frame.K.cpu().tolist(),
+        "world_from_cam": frame.world_from_ref.cpu().tolist(),
+        "depths": depths.cpu().tolist(),
+        "margin": frame.margin,
+        "tile": [h, w],
+        "grid": [rows, cols],
+        "atlas": path.name,
+    }
+
+
 def bake(
     model: CMCModel,
     out_dir: str | Path,
@@ -141,36 +165,23 @@ def bake(
     ``scale`` multiplies the texel resolution; ``merge`` > 1 composites that many adjacent
     planes into one (:func:`merge_planes`) for faster rendering; alpha at or below
     ``alpha_floor`` (8-bit counts) is stored as 0 (:func:`quantize_planes`; 0 keeps every alpha).
-    ``on_progress(done, total)`` is called after each MPI is written.
+    ``on_progress(done, total)`` is called after each MPI is evaluated and tiled (at an even
+    pace: its PNG is encoded in the background while the next MPI is evaluated, the last one's
+    after the call); the manifest is written last, when every atlas is complete.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     mpis = []
-    for i, (mpi_field, frame) in enumerate(zip(model.display_fields(), model.frames, strict=True)):
-        h, w = (max(2, round(s * scale)) for s in frame.extent)
-        rgba, depths = merge_planes(bake_textures(mpi_field, frame, (h, w)), frame.depths, merge)  # type: ignore[arg-type]
-        D = rgba.shape[0]
-        rows, cols = _atlas_grid(D)
-        atlas = np.zeros((rows * h, cols * w, 4), dtype=np.uint8)
-        tiles = quantize_planes(rgba, alpha_floor)
-        for k in range(D):
-            r, c = divmod(k, cols)
-            atlas[r * h : (r + 1) * h, c * w : (c + 1) * w] = tiles[k]
-        name = f"mpi_{i:02d}.png"
-        Image.fromarray(atlas, "RGBA").save(out / name, compress_level=1)
-        mpis.append(
-            {
-                "K": frame.K.cpu().tolist(),
-                "world_from_cam": frame.world_from_ref.cpu().tolist(),
-                "depths": depths.cpu().tolist(),
-                "margin": frame.margin,
-                "tile": [h, w],
-                "grid": [rows, cols],
-                "atlas": name,
-            }
-        )
-        if on_progress is not None:
-            on_progress(i + 1, len(model.frames))
+    total = len(model.frames)
+    with ThreadPoolExecutor(1) as writer:  # encodes MPI i's PNG while MPI i + 1 is evaluated
+        written: list[Future] = []
+        for i, (mpi_field, frame) in enumerate(zip(model.display_fields(), model.frames, strict=True)):
+            path = out / f"mpi_{i:02d}.png"
+            mpis.append(_bake_mpi(mpi_field, frame, scale, merge, alpha_floor, path, writer, written))
+            if on_progress is not None:
+                on_progress(i + 1, total)
+        for w in written:
+            w.result()  # raises what the writer raised
     centers = torch.stack([f.world_from_ref[:3, 3] for f in model.frames]).cpu()
     manifest = {
         "format": FORMAT,
