@@ -112,16 +112,16 @@ def test_cost_model_follows_the_config() -> None:
         cfg = preset_config("fast", steps=steps)
         # the first step that Trainer.compute_losses runs with the full loss
         assert first_full_step(cfg) == next(s for s in range(steps + 1) if s >= cfg.loss.recon_only_fraction * steps)
-    assert bake_steps(504, 378, 1.2, 3, 2048) == pytest.approx(29.77, abs=0.01)
+    assert bake_steps(504, 378, 1.2, 3, 6144) == pytest.approx(7.09, abs=0.01)  # fern, fast
+    assert bake_steps(504, 378, 1.2, 3, 2048) == pytest.approx(3 * bake_steps(504, 378, 1.2, 3, 6144))
     assert bake_steps(1008, 756, 1.2, 3, 2048) == pytest.approx(4 * bake_steps(504, 378, 1.2, 3, 2048))
     assert build_steps(504, 378) == 11.0 and build_steps(252, 189) == pytest.approx(11.0 / 4)
     assert build_steps(1008, 756) == 11.0  # the sweep's grid is capped: no more than fern's
     # a machine that builds fern's model in twice the reference's time trains twice as slowly
     assert step_s_from_build(2 * 11.0 * REFERENCE_STEP_S, 504, 378) == pytest.approx(2 * REFERENCE_STEP_S)
     assert step_s_from_build(11.0, 252, 189) == pytest.approx(4.0)  # a quarter of the pixels, a quarter of the sweep
-    assert final_bake_s(15.0, 1.0) == 15.0  # no preview yet: the bake in steps
-    assert final_bake_s(15.0, 1.0, 9.7) == 15.0  # a CPU: the steps say more than the step-0 preview
-    assert final_bake_s(15.0, 0.06, 9.7) == 9.7  # a GPU: the preview's measured bake
+    assert final_bake_s(7.0, 1.5) == 10.5  # no preview yet: the bake in steps
+    assert final_bake_s(7.0, 1.5, 12.0) == final_bake_s(7.0, 0.06, 12.0) == 12.0  # the preview's measured bake
 
 
 def test_preset_steps_match_the_presets() -> None:

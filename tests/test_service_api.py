@@ -197,10 +197,8 @@ def test_eta_seconds_covers_the_rest_of_the_job(ready) -> None:
     assert any(s == "training" and p == 0.0 and eta == pytest.approx(expected, rel=0.02) for s, p, eta in writes)
     bake = [(p, eta) for status, p, eta in writes if status == "baking"]
     preview_bake_s = rec.stats["preview"]["bake_seconds"]
-    trained_step_s = rec.stats["train"]["seconds_this_attempt"] / 25
-    # the final bake's first estimate: the preview's measured bake at four times its texels, or
-    # the bake's cost in steps of this job's measured step time, whichever is longer
-    first = max(preview_bake_s / PREVIEW_TEXEL_SCALE**2, bake_cost * trained_step_s)
+    # the final bake's first estimate: the preview's measured bake at four times its texels
+    first = preview_bake_s / PREVIEW_TEXEL_SCALE**2
     assert bake[0][0] == 0.0 and bake[0][1] == pytest.approx(first, abs=0.15)
     progress = [p for p, _ in bake]  # as the heartbeat wrote it (bake() reports each MPI: test_baking)
     assert progress == sorted(progress) and all(eta > 0 for p, eta in bake if p < 1)

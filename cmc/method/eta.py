@@ -19,8 +19,8 @@ speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2
   bench/reports/current/job_timeline_fern_cpu_rays6144.json). A GPU trains much faster: until
   training has run a step, a job's estimate is pessimistic there.
 * The model build (the plane sweeps), in training steps (:func:`build_steps`), and baking
-  (:func:`bake_steps`): modelled from the same jobs. A job that bakes a preview measures its own
-  bake speed there (:func:`final_bake_s`), and until it has trained a step it takes its step time
+  (:func:`bake_steps`): modelled from the same kind of jobs. A job that bakes a preview measures its
+  own bake speed there (:func:`final_bake_s`), and until it has trained a step it takes its step time
   from its own model build's pace (:func:`step_s_from_build`; ``worker.pipeline``): a slower or
   faster CPU than the reference shows in the build first.
 """
@@ -58,15 +58,17 @@ def full_cost_ratio(cfg: TrainConfig, num_views: int) -> float:
 
 
 def bake_steps(width: int, height: int, margin: float, num_views: int, rays_per_view: int) -> float:
-    """Baking's cost in reconstruction-only training steps (a model fitted to one measurement).
+    """Baking's cost in training steps (a model fitted to one kind of job), until a preview's bake
+    has measured it.
 
     Per plane of every MPI the bake evaluates the field once at each of ``margin^2 * W * H``
     texels and writes it; a step evaluates it at ``num_views * rays_per_view`` samples, forward and
-    backward. Fern at 504x378 with 4096 rays a view: about 15 steps (9-11 s in ``cmc serve``,
-    publishing included, bench/reports/history/job_timeline_fern_cpu.json); with the fast
-    preset's 6144, about 10.
+    backward. Fern at 504x378 with the fast preset's 6144 rays a view: about 7 steps (the final
+    bake 11.8-12.3 s in ``cmc serve``, publishing included, against the jobs' mean steps of 1.7-2.0
+    s, bench/reports/history/job_timeline_fern_cpu_bake_thread.json; 8.9 reconstruction-only
+    steps of a process doing nothing else, bench/reports/current/bake_time_cpu.json).
     """
-    return margin**2 * width * height / (1.5 * num_views * rays_per_view)
+    return margin**2 * width * height / (2.1 * num_views * rays_per_view)
 
 
 def build_steps(width: int, height: int) -> float:
@@ -88,13 +90,12 @@ def step_s_from_build(build_s: float, width: int, height: int) -> float:
 
 def final_bake_s(bake_cost: float, step_s: float, preview_estimate_s: float | None = None) -> float:
     """Seconds the final bake is expected to take: ``bake_cost`` training steps (:func:`bake_steps`)
-    of ``step_s`` seconds, or once a preview was baked, the longer of that and
-    ``preview_estimate_s`` (the preview's measured bake scaled by its texels). On a CPU the steps
-    say more: fern's final bake took 5-8x the step-0 preview's in ``cmc serve``, not the 4x its
-    texels predict (bench/job_timeline.md); on a GPU the steps are far faster than the bake, which
-    writes its textures on the CPU, and the preview's measurement holds."""
-    by_steps = bake_cost * step_s
-    return by_steps if preview_estimate_s is None else max(by_steps, preview_estimate_s)
+    of ``step_s`` seconds, or once a preview was baked, ``preview_estimate_s`` (the preview's
+    measured bake scaled by its texels: fern's final bake took 4.1x the half-resolution preview's
+    in a process doing nothing else and 4-4.5x in ``cmc serve``, bench/PROFILE.md; on a GPU the
+    steps are far faster than the bake, which writes its textures on the CPU, and they would say
+    less still)."""
+    return bake_cost * step_s if preview_estimate_s is None else preview_estimate_s
 
 
 def reference_training_s(steps: int) -> float:
