@@ -115,11 +115,11 @@ def test_cost_model_follows_the_config() -> None:
     assert bake_steps(504, 378, 1.2, 3, 6144) == pytest.approx(7.09, abs=0.01)  # fern, fast
     assert bake_steps(504, 378, 1.2, 3, 2048) == pytest.approx(3 * bake_steps(504, 378, 1.2, 3, 6144))
     assert bake_steps(1008, 756, 1.2, 3, 2048) == pytest.approx(4 * bake_steps(504, 378, 1.2, 3, 2048))
-    assert build_steps(504, 378) == 11.0 and build_steps(252, 189) == pytest.approx(11.0 / 4)
-    assert build_steps(1008, 756) == 11.0  # the sweep's grid is capped: no more than fern's
+    assert build_steps(504, 378) == 8.5 and build_steps(252, 189) == pytest.approx(8.5 / 4)
+    assert build_steps(1008, 756) == 8.5  # the sweep's grid is capped: no more than fern's
     # a machine that builds fern's model in twice the reference's time trains twice as slowly
-    assert step_s_from_build(2 * 11.0 * REFERENCE_STEP_S, 504, 378) == pytest.approx(2 * REFERENCE_STEP_S)
-    assert step_s_from_build(11.0, 252, 189) == pytest.approx(4.0)  # a quarter of the pixels, a quarter of the sweep
+    assert step_s_from_build(2 * 8.5 * REFERENCE_STEP_S, 504, 378) == pytest.approx(2 * REFERENCE_STEP_S)
+    assert step_s_from_build(8.5, 252, 189) == pytest.approx(4.0)  # a quarter of the pixels, a quarter of the sweep
     assert final_bake_s(7.0, 1.5) == 10.5  # no preview yet: the bake in steps
     assert final_bake_s(7.0, 1.5, 12.0) == final_bake_s(7.0, 0.06, 12.0) == 12.0  # the preview's measured bake
 

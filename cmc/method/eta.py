@@ -73,11 +73,12 @@ def bake_steps(width: int, height: int, margin: float, num_views: int, rays_per_
 
 def build_steps(width: int, height: int) -> float:
     """The model build's cost (the plane sweeps, with loading the photos and the kernels) in
-    training steps (a model fitted to one pair of jobs): fern at 504x378 in ``cmc serve`` on the
-    2-core CPU, builds of 10.5 and 12 s against training steps of 1.08 and 0.96 s, about 11 steps
-    (bench/reports/history/job_timeline_fern_cpu_eta_build13.json); in proportion to the photos'
-    pixels up to that size, no more above it (the sweep's grid is capped: ``SweepConfig.max_texels``)."""
-    return 11.0 * min(1.0, width * height / (504 * 378))
+    training steps (a model fitted to one kind of job): fern at 504x378, ``fast``, in ``cmc serve``
+    on 2-core CPUs, ten jobs on three machines of 2026-11-28 (builds of 6.6-15.2 s against the
+    jobs' mean steps of 0.79-2.03 s): 7.3-10.3 steps, 8.5 in the middle (bench/job_timeline.md,
+    last section); in proportion to the photos' pixels up to that size, no more above it (the
+    sweep's grid is capped: ``SweepConfig.max_texels``)."""
+    return 8.5 * min(1.0, width * height / (504 * 378))
 
 
 def step_s_from_build(build_s: float, width: int, height: int) -> float:
