@@ -32,7 +32,7 @@ POSE_REPORTS = {
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 PROFILE_REPORT = "profile_job_fern_cpu_rays6144.json"
 PREVIEW_REPORT = "preview_quality_fern_half.json"
-TIMELINE_REPORT = "job_timeline_fern_cpu_rays6144.json"
+TIMELINE_REPORT = "job_timeline_fern_cpu_bake_eta.json"
 BUILD_REPORT = "model_build_time_fern_fused.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
 SERVICE_REPORT = "service_cpu.json"
@@ -254,6 +254,12 @@ def speed() -> list[str]:
             e = r["eta_relative_error"]
             share = f"{100 * e['share_within_25_percent']:.0f} % (median error {100 * e['median']:.0f} %)"
             out.append(f"| {r['steps']} | {r['seconds_to_preview']} | {r['seconds_to_ready']} | {share} |")
+        out += [
+            "",
+            "Seconds depend on the day's machine: the job (at 2ed7099, the same cost a step) was ready",
+            "after 97 / 260 s on the faster 2-core machine of 2026-11-28's morning, whose training steps",
+            "took half the time (`job_timeline.md`).",
+        ]
     return out
 
 

@@ -16,7 +16,7 @@ speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2
 * :data:`REFERENCE_STEP_S`: a training step, 0.72 s in ``cmc serve`` (bench/reports/history/job_timeline_fern_cpu.json:
   the train phase of a 300-step job took 159 s more than that of an 80-step one, with 4096 rays
   a view; with the preset's 6144, 0.74 s on the faster machine of
-  bench/reports/current/job_timeline_fern_cpu_rays6144.json). A GPU trains much faster: until
+  bench/reports/history/job_timeline_fern_cpu_rays6144.json). A GPU trains much faster: until
   training has run a step, a job's estimate is pessimistic there.
 * The model build (the plane sweeps), in training steps (:func:`build_steps`), and baking
   (:func:`bake_steps`): modelled from the same kind of jobs. A job that bakes a preview measures its
