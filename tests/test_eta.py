@@ -69,6 +69,20 @@ def test_estimate_follows_steps_that_slow_down() -> None:
             assert abs(eta.remaining_s(done) - truth) <= 0.07 * truth, done
 
 
+def test_first_step_counts_only_until_its_phase_has_another() -> None:
+    """A process's first step pays one-off costs (3 s here against 1 s): the estimate takes it
+    while it is all there is, and drops it from the next step of its phase on."""
+    eta = TrainingETA(10, first_full=5, full_cost_ratio=2.0)
+    eta.record(0, 3.0)
+    assert eta.remaining_s(1) == pytest.approx(4 * 3.0 + 5 * 6.0)
+    eta.record(1, 1.0)
+    assert eta.step_s(False) == 1.0 and eta.remaining_s(2) == pytest.approx(3 * 1.0 + 5 * 2.0)
+    resumed = TrainingETA(10, first_full=5, full_cost_ratio=2.0)  # from a checkpoint in the full phase
+    resumed.record(7, 6.0)
+    resumed.record(8, 2.5)
+    assert resumed.step_s(True) == 2.5 and resumed.step_s(False) == 1.25
+
+
 def test_fit_reports_the_phase_aware_estimate(monkeypatch) -> None:
     """Trainer.fit's Progress.eta_s, on a fake clock: recon-only steps take 1 s, full ones 1.4 s."""
     cfg = preset_config("fast", steps=100, rays_per_view=64, unseen_rays=64)

@@ -125,6 +125,10 @@ class TrainingETA:
         self.total, self.first_full, self.ratio = total, min(max(first_full, 0), total), full_cost_ratio
         # per phase (reconstruction-only, full): the times of its last RECENT_STEPS steps
         self._recent: list[deque[float]] = [deque(maxlen=RECENT_STEPS), deque(maxlen=RECENT_STEPS)]
+        # the first step recorded (its phase, its seconds): it pays a process's one-off costs
+        # (fern on the CPU: 3 s against 1.8 s, bench/job_timeline.md), so it counts only until
+        # its phase has another
+        self._first: tuple[int, float] | None = None
 
     @classmethod
     def for_config(cls, cfg: TrainConfig, num_views: int) -> TrainingETA:
@@ -132,12 +136,19 @@ class TrainingETA:
 
     def record(self, step: int, seconds: float) -> None:
         """Step ``step`` (0-based) took ``seconds``."""
-        self._recent[int(step >= self.first_full)].append(seconds)
+        phase = int(step >= self.first_full)
+        if self._first is None:
+            self._first = (phase, seconds)
+        else:
+            self._recent[phase].append(seconds)
 
     def step_s(self, full: bool) -> float | None:
-        """Seconds per step of a phase: the mean of its recent steps, else predicted from the other
-        phase's."""
-        recon, full_ = (sum(r) / len(r) if r else None for r in self._recent)
+        """Seconds per step of a phase: the mean of its recent steps (the first step recorded only
+        while its phase has no other), else predicted from the other phase's."""
+        recent = [list(r) for r in self._recent]
+        if self._first is not None and not recent[self._first[0]]:
+            recent[self._first[0]] = [self._first[1]]
+        recon, full_ = (sum(r) / len(r) if r else None for r in recent)
         if full:
             return full_ if full_ is not None else (None if recon is None else recon * self.ratio)
         return recon if recon is not None else (None if full_ is None else full_ / self.ratio)
