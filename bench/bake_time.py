@@ -21,36 +21,17 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
-import tempfile
-from datetime import UTC, datetime
 from pathlib import Path
 
-from train_step import ROOT, git, machine, run_in_tree
+from train_step import STEP_TIMES, alternate, report_head
 
-from cmc.eval.bench import git_commit
-
-MEASURE = r"""
-import json, statistics, sys, tempfile, time, torch
-from cmc.config import preset_config, with_settings
-from cmc.data.datasets import load_llff
-from cmc.method.training import Trainer
+MEASURE = (
+    STEP_TIMES
+    + r"""
+import tempfile
 from cmc.serving.baking import bake
-data, state, steps, repeats, preview = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), float(sys.argv[5])
-torch.manual_seed(0)
-cfg = with_settings(preset_config("fast"), ["model.pyramid.init_from_sweep=false"])
-trainer = Trainer(load_llff(data).train, cfg)
-trainer.model.load_state_dict(torch.load(state))
-out = {}
-for phase, start in (("step_reconstruction_only", 0), ("step_full", 150)):
-    trainer.step = start
-    times = []
-    for i in range(steps + 2):
-        t = time.perf_counter()
-        trainer.train_step()
-        if i >= 2:
-            times.append(time.perf_counter() - t)
-    out[phase] = statistics.median(times)
+out = {"step_" + phase: s for phase, s in out.items()}
+repeats, preview = int(sys.argv[4]), float(sys.argv[5])
 trainer.model.load_state_dict(torch.load(state))  # bake the trained model, not the steps' changes
 for name, scale in (("bake_full", 1.0), ("bake_preview", preview)):
     times = []
@@ -62,6 +43,7 @@ for name, scale in (("bake_full", 1.0), ("bake_preview", preview)):
     out[name] = statistics.median(times)
 print(json.dumps(out))
 """
+)
 
 
 def main() -> None:
@@ -75,29 +57,15 @@ def main() -> None:
     ap.add_argument("--preview-scale", type=float, default=0.5)
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
-    argv = [str(Path(args.data).resolve()), str(Path(args.state).resolve())]
-    argv += [str(args.steps), str(args.repeats), str(args.preview_scale)]
-    rounds: dict[str, list[dict[str, float]]] = {"before": [], "after": []}
-    with tempfile.TemporaryDirectory() as tmp:
-        before_tree = Path(tmp) / "before"
-        git("worktree", "add", "--detach", str(before_tree), args.before)
-        try:
-            for r in range(args.rounds):
-                for name, tree in (("before", before_tree), ("after", ROOT)):
-                    rounds[name].append(run_in_tree(tree, MEASURE, *argv))
-                    print(f"round {r + 1}: {name} {rounds[name][-1]}", flush=True)
-        finally:
-            git("worktree", "remove", "--force", str(before_tree))
+    argv = [str(Path(args.data).resolve()), str(args.steps), str(Path(args.state).resolve())]
+    argv += [str(args.repeats), str(args.preview_scale)]
+    rounds = alternate(args.before, args.rounds, MEASURE, *argv)
     summary = {name: {k: statistics.median(r[k] for r in runs) for k in runs[0]} for name, runs in rounds.items()}
     for s in summary.values():
         s["bake_full_in_reconstruction_only_steps"] = s["bake_full"] / s["step_reconstruction_only"]
         s["bake_full_over_preview"] = s["bake_full"] / s["bake_preview"]
     report = {
-        "command": "python bench/bake_time.py " + " ".join(sys.argv[1:]),
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
-        "git_commit": git_commit(),
-        "before_commit": git("rev-parse", "--short", args.before),
-        "machine": machine(),
+        **report_head(args.before),
         "rounds": rounds,
         "median": summary,
     }

@@ -35,7 +35,8 @@ sys.path.insert(0, str(ROOT))
 
 from cmc.eval.bench import git_commit  # noqa: E402
 
-MEASURE = r"""
+# Times the two phases' steps into `out` (argv: data, steps, state); bake_time.py goes on from here.
+STEP_TIMES = r"""
 import json, statistics, sys, time, torch
 from cmc.config import preset_config, with_settings
 from cmc.data.datasets import load_llff
@@ -56,8 +57,8 @@ for phase, start in (("reconstruction_only", 0), ("full", 150)):
         if i >= 2:
             times.append(time.perf_counter() - t)
     out[phase] = statistics.median(times)
-print(json.dumps(out))
 """
+MEASURE = STEP_TIMES + "print(json.dumps(out))\n"
 
 
 def git(*args: str, cwd: Path = ROOT) -> str:
@@ -88,12 +89,36 @@ def run_in_tree(tree: Path, script: str, *args: str) -> dict[str, float]:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def machine() -> dict[str, object]:
+def alternate(before: str, rounds: int, script: str, *args: str) -> dict[str, list[dict[str, float]]]:
+    """``script`` run (:func:`run_in_tree`) in a worktree of commit ``before`` and in this tree,
+    alternating, ``rounds`` times: each tree's results in order."""
+    results: dict[str, list[dict[str, float]]] = {"before": [], "after": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        before_tree = Path(tmp) / "before"
+        git("worktree", "add", "--detach", str(before_tree), before)
+        try:
+            for r in range(rounds):
+                for name, tree in (("before", before_tree), ("after", ROOT)):
+                    results[name].append(run_in_tree(tree, script, *args))
+                    print(f"round {r + 1}: {name} {results[name][-1]}", flush=True)
+        finally:
+            git("worktree", "remove", "--force", str(before_tree))
+    return results
+
+
+def report_head(before: str) -> dict[str, object]:
+    """The command (this script's), date, commits and machine a report starts with."""
     return {
-        "cpu": platform.processor() or platform.machine(),
-        "cores": os.cpu_count(),
-        "python": platform.python_version(),
-        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+        "command": f"python bench/{Path(sys.argv[0]).name} " + " ".join(sys.argv[1:]),
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "git_commit": git_commit(),
+        "before_commit": git("rev-parse", "--short", before),
+        "machine": {
+            "cpu": platform.processor() or platform.machine(),
+            "cores": os.cpu_count(),
+            "python": platform.python_version(),
+            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+        },
     }
 
 
@@ -114,27 +139,13 @@ def main() -> None:
         return
     if not (args.before and args.out):
         ap.error("--before and --out are needed to time")
-    rounds: dict[str, list[dict[str, float]]] = {"before": [], "after": []}
-    with tempfile.TemporaryDirectory() as tmp:
-        before_tree = Path(tmp) / "before"
-        git("worktree", "add", "--detach", str(before_tree), args.before)
-        try:
-            for r in range(args.rounds):
-                for name, tree in (("before", before_tree), ("after", ROOT)):
-                    state = str(Path(args.state).resolve()) if args.state else ""
-                    rounds[name].append(run_in_tree(tree, MEASURE, data, str(args.steps), state))
-                    print(f"round {r + 1}: {name} {rounds[name][-1]}", flush=True)
-        finally:
-            git("worktree", "remove", "--force", str(before_tree))
+    state = str(Path(args.state).resolve()) if args.state else ""
+    rounds = alternate(args.before, args.rounds, MEASURE, data, str(args.steps), state)
     summary = {
         name: {phase: statistics.median(r[phase] for r in runs) for phase in runs[0]} for name, runs in rounds.items()
     }
     report = {
-        "command": "python bench/train_step.py " + " ".join(sys.argv[1:]),
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
-        "git_commit": git_commit(),
-        "before_commit": git("rev-parse", "--short", args.before),
-        "machine": machine(),
+        **report_head(args.before),
         "steps_per_process": args.steps,
         "start": args.state or "the preset without its sweep",
         "rounds": rounds,
