@@ -145,10 +145,10 @@ class TrainingETA:
     def step_s(self, full: bool) -> float | None:
         """Seconds per step of a phase: the mean of its recent steps (the first step recorded only
         while its phase has no other), else predicted from the other phase's."""
-        recent = [list(r) for r in self._recent]
-        if self._first is not None and not recent[self._first[0]]:
-            recent[self._first[0]] = [self._first[1]]
-        recon, full_ = (sum(r) / len(r) if r else None for r in recent)
+        means = [sum(r) / len(r) if r else None for r in self._recent]
+        if self._first is not None and means[self._first[0]] is None:
+            means[self._first[0]] = self._first[1]
+        recon, full_ = means
         if full:
             return full_ if full_ is not None else (None if recon is None else recon * self.ratio)
         return recon if recon is not None else (None if full_ is None else full_ / self.ratio)

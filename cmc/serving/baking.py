@@ -119,17 +119,10 @@ def quantize_planes(rgba: torch.Tensor, alpha_floor: int = ALPHA_FLOOR) -> np.nd
 
 
 def _bake_mpi(
-    field: MPIField,
-    frame: MPIFrame,
-    scale: float,
-    merge: int,
-    alpha_floor: int,
-    path: Path,
-    writer: ThreadPoolExecutor,
-    written: list[Future],
-) -> dict[str, Any]:
-    """One MPI of :func:`bake`: its planes evaluated and tiled into an atlas, whose PNG
-    ``writer`` encodes to ``path`` (the future appended to ``written``); its manifest entry."""
+    field: MPIField, frame: MPIFrame, scale: float, merge: int, alpha_floor: int, name: str
+) -> tuple[dict[str, Any], np.ndarray]:
+    """One MPI of :func:`bake`: its manifest entry and its planes tiled into an atlas
+    [rows * h, cols * w, 4] uint8, to be written as ``name``."""
     h, w = (max(2, round(s * scale)) for s in frame.extent)
     rgba, depths = merge_planes(bake_textures(field, frame, (h, w)), frame.depths, merge)
     D = rgba.shape[0]
@@ -139,16 +132,16 @@ def _bake_mpi(
     for k in range(D):
         r, c = divmod(k, cols)
         atlas[r * h : (r + 1) * h, c * w : (c + 1) * w] = tiles[k]
-    written.append(writer.submit(Image.fromarray(atlas, "RGBA").save, path, compress_level=1))
-    return {
+    entry = {
         "K": frame.K.cpu().tolist(),
         "world_from_cam": frame.world_from_ref.cpu().tolist(),
         "depths": depths.cpu().tolist(),
         "margin": frame.margin,
         "tile": [h, w],
         "grid": [rows, cols],
-        "atlas": path.name,
+        "atlas": name,
     }
+    return entry, atlas
 
 
 def bake(
@@ -176,8 +169,9 @@ def bake(
     with ThreadPoolExecutor(1) as writer:  # encodes MPI i's PNG while MPI i + 1 is evaluated
         written: list[Future] = []
         for i, (mpi_field, frame) in enumerate(zip(model.display_fields(), model.frames, strict=True)):
-            path = out / f"mpi_{i:02d}.png"
-            mpis.append(_bake_mpi(mpi_field, frame, scale, merge, alpha_floor, path, writer, written))
+            entry, atlas = _bake_mpi(mpi_field, frame, scale, merge, alpha_floor, f"mpi_{i:02d}.png")
+            mpis.append(entry)
+            written.append(writer.submit(Image.fromarray(atlas, "RGBA").save, out / entry["atlas"], compress_level=1))
             if on_progress is not None:
                 on_progress(i + 1, total)
         for w in written:
