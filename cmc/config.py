@@ -81,7 +81,7 @@ class LossConfig:
     lambda_alpha_entropy: float = 0.003  # visible alpha pushed to 0 or 1 (cmc.method.losses.alpha_entropy)
     # Planar surfaces where the photo shows no edge: second-order smoothness of each MPI's disparity
     # in its own photo (cmc.method.losses.disparity_curvature), on patches drawn at several scales.
-    lambda_depth_curvature: float = 0.0
+    lambda_depth_curvature: float = 0.01
     recon_only_fraction: float = 0.3  # first fraction of steps uses L_MSE only (paper: 15/50 epochs)
     cross_view_colour: float = 0.1  # factor on the colour gradients of MPI i from input view j != i
 

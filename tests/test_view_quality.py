@@ -250,21 +250,24 @@ def test_robust_depth_consistency_corrects_small_and_tolerates_large_disagreemen
     assert pull(squared, 0.5 + 8 * scale)[0] > pull(squared, 0.5 + scale)[0]
 
 
-def test_disparity_curvature_vanishes_on_slanted_planes_and_yields_at_edges():
-    """Second differences of disparity: 0 on any affine disparity (a 3D plane, slanted or not),
-    |kink| / spacing at a crease where the photo is flat, and exp(-g / edge_scale) of that where
-    the photo's colour steps by g beside it."""
+def test_disparity_curvature_vanishes_on_slanted_planes_and_staircases_and_yields_at_edges():
+    """Second differences of disparity beyond one plane spacing: 0 on any affine disparity (a 3D
+    plane, slanted or not) and on a staircase of one-plane steps, (|kink| / spacing - 1) at a
+    crease where the photo is flat, and exp(-g / edge_scale) of that where the photo's colour
+    steps by g beside it."""
     from cmc.method.losses import disparity_curvature
 
     p, spacing, edge_scale = 6, 0.02, 0.1
     y, x = torch.meshgrid(torch.arange(p, dtype=torch.float32), torch.arange(p, dtype=torch.float32), indexing="ij")
     flat = torch.full((1, p, p, 3), 0.5)
     slanted = (0.3 + 0.01 * x - 0.02 * y)[None]
-    assert disparity_curvature(slanted, flat, spacing, edge_scale).item() == pytest.approx(0.0, abs=1e-4)
-    # A crease along column 2: a slope of 0.04 per column beyond it, none before.
-    crease = (0.3 + 0.04 * (x - 2).clamp_min(0))[None]
-    # One second difference of 0.04 per row (at column 2) of the p - 2 per row, none along y.
-    expected = 0.5 * (0.04 / spacing) / (p - 2)
+    assert disparity_curvature(slanted, flat, spacing, edge_scale).item() == pytest.approx(0.0, abs=1e-6)
+    staircase = (0.3 + spacing * torch.div(x, 2, rounding_mode="floor"))[None]  # a plane every 2 columns
+    assert disparity_curvature(staircase, flat, spacing, edge_scale).item() == pytest.approx(0.0, abs=1e-6)
+    # A crease along column 2: a slope of 0.06 (three spacings) per column beyond it, none before.
+    crease = (0.3 + 0.06 * (x - 2).clamp_min(0))[None]
+    # One second difference of 0.06 per row (at column 2) of the p - 2 per row, none along y.
+    expected = 0.5 * (0.06 / spacing - 1) / (p - 2)
     assert disparity_curvature(crease, flat, spacing, edge_scale).item() == pytest.approx(expected, rel=1e-5)
     # The photo steps by 0.2 between columns 2 and 3: the crease's difference weighs exp(-2).
     edged = flat.clone()

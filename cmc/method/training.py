@@ -47,7 +47,7 @@ CHECKPOINT_VERSION = 1
 # the samples of patch k CURVATURE_STRIDES[k % 4] pixels apart, so that surfaces are asked to be
 # planar over a few pixels and over tens of them; colour edges of CURVATURE_EDGE_SCALE (colour
 # units) lighten it.
-CURVATURE_PATCHES, CURVATURE_PATCH, CURVATURE_STRIDES, CURVATURE_EDGE_SCALE = 16, 8, (1, 2, 4, 8), 0.1
+CURVATURE_PATCHES, CURVATURE_PATCH, CURVATURE_STRIDES, CURVATURE_EDGE_SCALE = 16, 8, (1, 2, 4, 8), 0.03
 
 
 class TrainingCancelled(Exception):
