@@ -79,9 +79,6 @@ class LossConfig:
     # "cauchy" (occlusion-tolerant, on disparity; cmc.method.losses.robust_depth_consistency).
     depth_consistency: Literal["squared", "cauchy"] = "cauchy"
     lambda_alpha_entropy: float = 0.003  # visible alpha pushed to 0 or 1 (cmc.method.losses.alpha_entropy)
-    # Planar surfaces where the photo shows no edge: second-order smoothness of each MPI's disparity
-    # in its own photo (cmc.method.losses.disparity_curvature), on patches drawn at several scales.
-    lambda_depth_curvature: float = 0.01
     recon_only_fraction: float = 0.3  # first fraction of steps uses L_MSE only (paper: 15/50 epochs)
     cross_view_colour: float = 0.1  # factor on the colour gradients of MPI i from input view j != i
 
@@ -200,7 +197,6 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
                 lambda_distortion=0.0,
                 depth_consistency="squared",
                 lambda_alpha_entropy=0.0,
-                lambda_depth_curvature=0.0,
                 cross_view_colour=1.0,
             ),
         )

@@ -114,31 +114,3 @@ def alpha_entropy(outs: Sequence[RayOutput]) -> torch.Tensor:
         h = -(a * torch.log(a) + (1 - a) * torch.log1p(-a))
         terms.append((_mask(o) * (trans * h).sum(1)).mean())
     return torch.stack(terms).mean()
-
-
-def disparity_curvature(
-    disparity: torch.Tensor, rgb: torch.Tensor, plane_spacing: float, edge_scale: float
-) -> torch.Tensor:
-    """Second-order smoothness of an MPI's disparity in its own photo, lighter across the photo's edges.
-
-    The disparity of a plane in 3D is an affine function of the pixel coordinates, so its second
-    differences vanish on any plane, slanted or not: the prior asks for planar surfaces where the
-    photo shows no edge, which neither the fronto-parallel planes nor a first-order penalty ask.
-    A slanted surface drawn on the MPI's planes steps from one plane to the next (second
-    differences of one plane spacing): the first spacing of every difference is free, so such a
-    staircase costs nothing and the prior does not push it to half-transparent planes; a surface
-    torn across several planes does cost.
-
-    Shapes: ``disparity`` [P, p, p] (normalised disparity of P square patches of p x p samples;
-    neighbouring samples of a patch are one step apart), ``rgb`` [P, p, p, 3] the photo there.
-    Per second difference along either axis: ``max(|s_{k-1} - 2 s_k + s_{k+1}| / plane_spacing - 1, 0)``
-    weighed by ``exp(-g / edge_scale)``, g the larger of the two neighbouring colour differences
-    (mean absolute over RGB, colour units). Mean over every difference.
-    """
-    terms = []
-    for s, c in ((disparity, rgb), (disparity.transpose(1, 2), rgb.transpose(1, 2))):
-        d2 = ((s[:, :, 2:] - 2 * s[:, :, 1:-1] + s[:, :, :-2]).abs() / plane_spacing - 1).clamp_min(0)
-        step = (c[:, :, 1:] - c[:, :, :-1]).abs().mean(-1)  # [P, p, p - 1]
-        edge = torch.maximum(step[:, :, 1:], step[:, :, :-1])
-        terms.append((torch.exp(-edge / edge_scale) * d2).mean())
-    return torch.stack(terms).mean()

@@ -33,21 +33,14 @@ from cmc.method.losses import (
     alpha_entropy,
     appearance_consistency,
     depth_consistency,
-    disparity_curvature,
     distortion,
     reconstruction_loss,
     robust_depth_consistency,
 )
 from cmc.method.model import CMCModel
-from cmc.mpi.rendering import RayOutput, render_ray_groups
+from cmc.mpi.rendering import render_ray_groups
 
 CHECKPOINT_VERSION = 1
-# The depth-curvature prior's patches (LossConfig.lambda_depth_curvature): per MPI and step,
-# CURVATURE_PATCHES square patches of CURVATURE_PATCH x CURVATURE_PATCH pixels of its own photo,
-# the samples of patch k CURVATURE_STRIDES[k % 4] pixels apart, so that surfaces are asked to be
-# planar over a few pixels and over tens of them; colour edges of CURVATURE_EDGE_SCALE (colour
-# units) lighten it.
-CURVATURE_PATCHES, CURVATURE_PATCH, CURVATURE_STRIDES, CURVATURE_EDGE_SCALE = 16, 8, (1, 2, 4, 8), 0.03
 
 
 class TrainingCancelled(Exception):
@@ -104,7 +97,6 @@ class LossTerms:
     dc: torch.Tensor  # depth consistency between MPIs at unseen poses (Eq. 4.7)
     distortion: torch.Tensor  # concentration of each ray's opacity
     alpha_entropy: torch.Tensor  # visible alpha pushed to 0 or 1
-    depth_curvature: torch.Tensor  # second-order smoothness of each MPI's disparity in its photo
     total: torch.Tensor
 
     @staticmethod
@@ -116,7 +108,6 @@ class LossTerms:
         dc: torch.Tensor,
         distortion: torch.Tensor,
         alpha_entropy: torch.Tensor,
-        depth_curvature: torch.Tensor,
     ) -> LossTerms:
         """The terms and their sum weighted by ``lc``."""
         total = (
@@ -126,9 +117,8 @@ class LossTerms:
             + lc.lambda_dc * dc
             + lc.lambda_distortion * distortion
             + lc.lambda_alpha_entropy * alpha_entropy
-            + lc.lambda_depth_curvature * depth_curvature
         )
-        return LossTerms(mse, dc_input, ac, dc, distortion, alpha_entropy, depth_curvature, total)
+        return LossTerms(mse, dc_input, ac, dc, distortion, alpha_entropy, total)
 
     def floats(self) -> dict[str, float]:
         """Every term as a float, by name (``total`` included)."""
@@ -207,22 +197,6 @@ class Trainer:
             self._orders[key] = torch.randperm(self.scene.cameras.width * self.scene.cameras.height, generator=gen)
         return self._orders[key]
 
-    def _patch_pixels(self, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        """The depth-curvature prior's patches: pixel indices [P * p * p] (patch by patch, row by
-        row) and their centre coordinates [P * p * p, 2], P = CURVATURE_PATCHES, p = CURVATURE_PATCH."""
-        w, h = self.scene.cameras.width, self.scene.cameras.height
-        offsets = torch.arange(CURVATURE_PATCH)
-        idx = []
-        for k in range(CURVATURE_PATCHES):
-            # the stride, at most what fits in the photo (small test images)
-            step = max(1, min(CURVATURE_STRIDES[k % len(CURVATURE_STRIDES)], (min(w, h) - 1) // (CURVATURE_PATCH - 1)))
-            span = (CURVATURE_PATCH - 1) * step
-            x0 = int(torch.randint(0, w - span, (1,), generator=gen))
-            y0 = int(torch.randint(0, h - span, (1,), generator=gen))
-            idx.append(((y0 + step * offsets)[:, None] * w + (x0 + step * offsets)[None, :]).reshape(-1))
-        idx = torch.cat(idx).to(self.device)
-        return idx, torch.stack([idx % w, idx // w], -1).float() + 0.5
-
     def _colour_grads(self, mpi: int) -> list[float]:
         """Factor on the colour gradients of MPI ``mpi`` from each input view's rays."""
         s = self.cfg.loss.cross_view_colour
@@ -246,18 +220,12 @@ class Trainer:
             pose = sample_virtual_pose(self.scene.cameras.world_from_cam, rng, cfg.unseen_jitter)
             P = torch.as_tensor(pose, dtype=torch.float32, device=self.device)
             groups.append((self.K[0], P, self._random_pixels(gen, cfg.unseen_rays)[1]))
-        # per_mpi[i][t]: MPI i's render of target t (one field query per MPI); with the
-        # depth-curvature prior, MPI i also renders patches of its own photo (geometry only).
+        # per_mpi[i][t]: MPI i's render of target t (one field query per MPI).
         unseen_grad = [1.0] * (len(groups) - len(self.scene))
-        patches = [self._patch_pixels(gen) for _ in fields] if lc.lambda_depth_curvature > 0 else []
-        per_mpi, patch_outs = [], []
-        for i, (f, fr) in enumerate(zip(fields, frames, strict=True)):
-            own = [(self.K[i], self.poses[i], patches[i][1])] if patches else []
-            outs = render_ray_groups(
-                f, fr, groups + own, self._colour_grads(i) + unseen_grad + [0.0] * len(own), cfg.colour_grad_min_weight
-            )
-            per_mpi.append(outs[: len(groups)])
-            patch_outs += outs[len(groups) :]
+        per_mpi = [
+            render_ray_groups(f, fr, groups, self._colour_grads(i) + unseen_grad, cfg.colour_grad_min_weight)
+            for i, (f, fr) in enumerate(zip(fields, frames, strict=True))
+        ]
         by_target = list(zip(*per_mpi, strict=True))
         n = len(self.scene)
         zero = torch.zeros((), device=self.device)
@@ -286,24 +254,7 @@ class Trainer:
             dc=torch.stack([dc_loss(o) for o in unseen]).mean() if unseen else zero,
             distortion=distortion(every_out, self.model.cfg.num_planes) if lc.lambda_distortion > 0 else zero,
             alpha_entropy=alpha_entropy(every_out) if lc.lambda_alpha_entropy > 0 else zero,
-            depth_curvature=torch.stack(
-                [
-                    self._depth_curvature(o, self.images[i][idx])
-                    for i, (o, (idx, _)) in enumerate(zip(patch_outs, patches, strict=True))
-                ]
-            ).mean()
-            if patches
-            else zero,
         )
-
-    def _depth_curvature(self, o: RayOutput, rgb: torch.Tensor) -> torch.Tensor:
-        """The depth-curvature prior on one MPI's render ``o`` of its patches, ``rgb`` [P * p * p, 3]
-        the photo there."""
-        inv_near, inv_far = 1.0 / self.model.near, 1.0 / self.model.far
-        s = (1.0 / o.depth.clamp_min(0.5 * self.model.near) - inv_far) / (inv_near - inv_far)
-        shape = (CURVATURE_PATCHES, CURVATURE_PATCH, CURVATURE_PATCH)
-        spacing = 1.0 / (self.model.cfg.num_planes - 1)
-        return disparity_curvature(s.reshape(shape), rgb.reshape(*shape, 3), spacing, CURVATURE_EDGE_SCALE)
 
     def train_step(self) -> dict[str, float]:
         for g in self.optimizer.param_groups:
