@@ -38,7 +38,8 @@ READING = {
     "novel_depth_median_abs_rel_error": "median |z - z_true| / z_true of the novel view's depth: about 0.004 "
     "(0.4 %) in the default run; above 0.05 surfaces sit on the wrong planes",
     "novel_depth.png": "inverse depth, yellow near to blue far; the strip below maps colours to depths in scene units",
-    "train_seconds": "about 165 s for 300 steps on 2 CPU cores",
+    "train_seconds": "165-345 s for 300 steps on 2 CPU cores, by the machine (the recorded run 165 s; 345 s on "
+    "two slower machines of 2026-11-28)",
 }
 
 
