@@ -6,7 +6,7 @@ sweep, then the parameters of ``--state``, a trained model written by
 ``python bench/train_step.py --save-state``), times ``--steps`` training steps of each loss phase
 (reconstruction only from step 0, the full loss from step 150, after two warm-up steps) and
 ``--repeats`` bakes at full texel resolution and at a preview's (``--preview-scale``, the
-worker's ``PREVIEW_TEXEL_SCALE``), and reports the medians: what ``cmc.method.eta.bake_steps``
+``cmc.serving.baking.PREVIEW_TEXEL_SCALE``), and reports the medians: what ``cmc.method.eta.bake_steps``
 models (a bake in training steps) measured on this machine.
 
 Usage (from the repository root, nothing else running; writes the report and prints it)::

@@ -8,7 +8,7 @@ Stages, each timed with the device synchronised at its ends:
   * ``train``: every step of ``Trainer.train_step`` done here in three timed parts (forward =
     ``compute_losses``, backward, Adam step), per loss phase (reconstruction only, then all terms);
   * ``preview bake``: the bake a job publishes after ``--preview-at`` of its steps (the service's
-    ``CMC_PREVIEW_AT``, at ``worker.pipeline.PREVIEW_TEXEL_SCALE``), and the final ``bake``
+    ``CMC_PREVIEW_AT``, at ``cmc.serving.baking.PREVIEW_TEXEL_SCALE``), and the final ``bake``
     (``cmc.serving.baking.bake``), each scored on the test views (PSNR; the scoring is not
     timed); ``load`` (``BakedScene.load``), the first render of a test view and the median of
     ``--renders`` more.
@@ -45,8 +45,7 @@ from cmc.data.datasets import load_llff
 from cmc.eval.bench import report_header
 from cmc.eval.metrics import psnr
 from cmc.method.training import Trainer, lr_at
-from cmc.serving.baking import BakedScene, bake
-from worker.pipeline import PREVIEW_TEXEL_SCALE
+from cmc.serving.baking import PREVIEW_TEXEL_SCALE, BakedScene, bake
 
 
 def side_by_side(reports: list[dict[str, Any]]) -> str:

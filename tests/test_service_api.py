@@ -34,7 +34,7 @@ from cmc.data.datasets import DEFAULT_LAYERS, render_layers
 from cmc.eval.metrics import psnr
 from cmc.geometry.camera_paths import camera_path, capture_radius, mean_pose, orbit_path
 from cmc.geometry.cameras import Cameras, convert_pose
-from cmc.serving.baking import BakedScene
+from cmc.serving.baking import PREVIEW_TEXEL_SCALE, BakedScene
 from cmc.serving.video import path_cameras
 from service.app import create_app
 from service.auth import key_digest
@@ -43,7 +43,6 @@ from service.negotiation import negotiate
 from service.quotas import RECORD_HOLD_S
 from service.schemas import RenderCamera
 from service.settings import Settings, load_settings
-from worker.pipeline import PREVIEW_TEXEL_SCALE
 
 
 class RecordingQueue:

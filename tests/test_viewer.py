@@ -28,8 +28,7 @@ from cmc.eval.diagnostics import depth_preview
 from cmc.eval.metrics import psnr
 from cmc.geometry.camera_paths import mean_pose
 from cmc.method.training import Trainer
-from cmc.serving.baking import BakedScene, bake
-from worker.pipeline import PREVIEW_TEXEL_SCALE
+from cmc.serving.baking import PREVIEW_TEXEL_SCALE, BakedScene, bake
 
 VIEWER = Path(__file__).resolve().parent.parent / "service" / "static" / "viewer.html"
 W, H = 80, 60

@@ -60,9 +60,6 @@ WAITING = "waiting for a worker"  # the status detail of a job between workers
 QUEUE_DOWN = "waiting for a worker: the job queue cannot be reached; the job is sent as soon as it is back"
 SEND_RETRY_SECONDS = 5.0  # a message taken for sending is due again after this unless it was sent
 DELIVER_EVERY_SECONDS = 1.0  # how often Celery workers send due messages (worker.celery_app)
-# The preview's texel resolution against the final bake's: a quarter of the texels bake in about a
-# quarter of the time (fern: 1.9 s instead of 7.3 s) at 0.2 dB less (bench/preview_quality.md).
-PREVIEW_TEXEL_SCALE = 0.5
 
 
 class JobStopped(Exception):
@@ -346,6 +343,7 @@ class _TrainPhase:
     def __init__(self, ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path):
         from cmc.data.datasets import load_scene_folder
         from cmc.method.eta import REFERENCE_STEP_S, bake_steps, build_steps
+        from cmc.serving.baking import PREVIEW_TEXEL_SCALE
 
         self.ctx, self.rec, self.hb, self.layout = ctx, rec, hb, SceneLayout(rec.id)
         self.scene = load_scene_folder(scene_dir)
@@ -430,7 +428,7 @@ class _TrainPhase:
 
     def _bake_preview(self) -> None:
         """Bake the model as it is now and publish it as the scene's preview (whole, or not at all)."""
-        from cmc.serving.baking import MANIFEST, bake
+        from cmc.serving.baking import MANIFEST, PREVIEW_TEXEL_SCALE, bake
 
         cfg, hb, step = self.cfg, self.hb, self.trainer.step
         hb.set(detail=f"baking a preview at step {step} of {cfg.steps}")

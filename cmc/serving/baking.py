@@ -64,6 +64,10 @@ from cmc.errors import BakedFormatError
 # it, at fern's test views) but every such texel makes the renderer take a sample: without it a
 # fern render takes 22 % less time (bench/reports/history/RESULTS-until-2026-11-27.md, serving cost).
 ALPHA_FLOOR = 2
+# A preview bake's texel resolution against the final bake's (``bake(scale=...)``): a quarter of
+# the texels bake in about a quarter of the time (fern: 1.9 s instead of 7.3 s) at 0.2 dB less
+# (bench/preview_quality.md).
+PREVIEW_TEXEL_SCALE = 0.5
 
 FORMAT = "cmc-mpi"
 VERSION = 1
