@@ -56,6 +56,27 @@ ROUNDS = [
         "nine variants, then with the next three and the last three (`--seconds 20`; the variants file "
         "holds all fifteen)",
     ),
+    (
+        "explore_gpu_round7.jsonl",
+        "python3 bench/gpudata.py unpack; CMC_GIT_COMMIT=d9b00a9 PYTHONPATH=. CMC_LPIPS_DIR=.gpudata/weights "
+        "python3 bench/explore_gpu.py bench/reports/history/explore_gpu_round7_variants.json $OUT "
+        "--data .gpudata/llff --scenes fern,room,trex --lpips --workers 9 --seconds 285 --grace 150",
+        "the weights of the entropy and concentration priors, an extra coarse texture level (1/32) or "
+        "one fewer (no 1/16), the sweep's window (3 instead of 5) and softmin temperature (0.5 instead "
+        "of 0.3), and colour gradients for every plane sample (`colour_grad_min_weight=0`: is the "
+        "backward pass's shortcut free?). The `git_commit` the reports name is the training code's "
+        "(f7d09df; d9b00a9 added only the variants file)",
+    ),
+    (
+        "explore_gpu_round8.jsonl",
+        "python3 bench/gpudata.py unpack; CMC_GIT_COMMIT=d9b00a9 PYTHONPATH=. CMC_LPIPS_DIR=.gpudata/weights "
+        "python3 bench/explore_gpu.py bench/reports/history/explore_gpu_round8_variants.json $OUT "
+        "--data .gpudata/llff --scenes fern,room,trex --lpips --workers 9 --seconds 235 --grace 120",
+        "round 7's leads together and apart: the extra coarse level with a weaker entropy prior, the "
+        "smaller sweep window or the sweep's larger semi-global penalties (0.3, 3.0), a sixth level "
+        "(1/64). The same warm machine right after round 7, whose `base` is the reference here; the "
+        "ninth variant (levels5_window3_ent0002) did not start before the deadline",
+    ),
 ]
 ADOPTED = {"sgm2_steps300", "rays6144", "permutation_lr004"}  # the variants the preset took up
 
