@@ -142,11 +142,8 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
     * ``paper``: the paper's Sec. 5.1 -- per-view MLP (PE L=10 on the point, raw direction,
       6 x 256 LeakyReLU), 80 planes, Adam 5e-3 -> 1e-4, 1024-ray batches, reconstruction only for
       the first 30 %, then lambda_ac = lambda_dc = 1.
-    * ``fast``: explicit multi-resolution plane textures (see cmc.mpi.fields.PyramidPlaneField;
-      five levels from half the photo's resolution to 1/32, the coarsest learning alpha only on
-      the farther half of the planes: ``model.pyramid.coarse_alpha_from=0.5``, a large
-      background held together without tearing nearer slanted surfaces), alpha initialised by
-      an occlusion-aware, edge-aware plane sweep with the AD-Census cost
+    * ``fast``: explicit multi-resolution plane textures (see cmc.mpi.fields.PyramidPlaneField),
+      alpha initialised by an occlusion-aware, edge-aware plane sweep with the AD-Census cost
       (``sweep.cost="ad_census"``) and semi-global aggregation (``sweep.smoothness=(0.2,
       2.0)``: an untextured wall takes the depth its neighbours agree on), softmin temperature
       0.3, run on a grid twice as fine as alpha's finest level while that grid holds at most

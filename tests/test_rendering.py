@@ -440,30 +440,6 @@ def test_pyramid_base_groups_give_plane_k_the_base_k_times_g_over_d(num_planes):
         PyramidPlaneField(2, h, w, PyramidFieldConfig(base_groups=3), rgb, alpha[:2])
 
 
-@pytest.mark.parametrize("share, nearest_fixed", [(0.5, 4), (0.3, 3), (0.0, 0)])
-def test_the_coarsest_level_learns_alpha_only_on_the_farther_planes(share, nearest_fixed):
-    """``coarse_alpha_from``: the coarsest level's alpha gets no gradient on the nearest
-    ceil(share * D) planes, so an optimizer step leaves it where the sweep started it (0) there;
-    its colour, every finer level and the farther planes' coarse alpha learn as before."""
-    torch.manual_seed(0)
-    D, h, w = 8, 32, 48
-    cfg = PyramidFieldConfig(scales=(0.5, 0.25, 0.125), coarse_alpha_from=share)
-    field = PyramidPlaneField(D, h, w, cfg, torch.rand(3, h, w), torch.rand(D, 16, 24))
-    g, z, dirs = torch.rand(500, D, 2) * 2 - 1, torch.linspace(-1, 1, D), torch.zeros(500, 3)
-    rgb, alpha = field(g, z, dirs)
-    ((rgb - 0.3) ** 2).mean().add((alpha - 0.7).pow(2).mean()).backward()
-    coarse, finer = field.levels[-1], field.levels[-2]
-    # Which planes' coarse alpha learns; the back plane is opaque whatever its alpha, so never.
-    moved = coarse.grad[:, 3].abs().amax((1, 2)) > 0
-    assert moved.tolist() == [nearest_fixed <= k < D - 1 for k in range(D)]
-    assert (coarse.grad[:, :3].abs().amax((1, 2, 3)) > 0).all()  # colour everywhere
-    assert (finer.grad[:-1, 3].abs().amax((1, 2)) > 0).all()
-    torch.optim.Adam(field.parameters(), lr=0.1).step()
-    assert torch.all(coarse[:nearest_fixed, 3] == 0) and torch.all(coarse[nearest_fixed:-1, 3].abs().amax((1, 2)) > 0)
-    with pytest.raises(ConfigError):
-        PyramidPlaneField(D, h, w, PyramidFieldConfig(coarse_alpha_from=1.5), torch.rand(3, h, w))
-
-
 def test_a_model_with_fewer_planes_than_the_presets_base_groups_gets_one_base_per_plane():
     """``fast`` has 8 base colour groups; a model set to 4 planes by hand builds with one base per
     plane instead of refusing a setting the user did not make, and renders its input view."""

@@ -24,7 +24,6 @@ composited.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -117,12 +116,7 @@ class PyramidFieldConfig:
     """Explicit multi-resolution plane textures and how the plane sweep starts them (defaults:
     the ``fast`` preset's)."""
 
-    scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625, 0.03125)  # per-plane RGBA residual levels
-    # The coarsest level learns alpha only on the planes from this share of them on (planes are
-    # numbered nearest first; 0: every plane): its blocks of 32 pixels hold a large background
-    # together, and would tear nearer surfaces that cross many planes within one block. On the
-    # nearer planes its alpha stays as it starts (0 when the plane sweep starts alpha).
-    coarse_alpha_from: float = 0.5
+    scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane RGBA residual levels
     base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
     base_groups: int = 8  # base colours: one per group of adjacent planes (CMCModel: at most one per plane)
     # How rays sample the base colours: "bilinear", or "bicubic" (a sharper reconstruction: a
@@ -148,8 +142,7 @@ class PyramidPlaneField(MPIField):
     Colour logits of plane k = base[k * G // D](g) + sum_l level_l[k](g)[:3]; alpha logit =
     sum_l level_l[k](g)[3], where base is [G, 3, h, w] (G = ``cfg.base_groups``, one base per
     group of about D / G adjacent planes) and level l is [D, 4, h * s_l, w * s_l], all sampled
-    bilinearly. The coarsest level's alpha gets no gradient on the nearest
-    ``ceil(cfg.coarse_alpha_from * D)`` planes.
+    bilinearly.
 
     Args:
         num_planes: D.
@@ -178,8 +171,6 @@ class PyramidPlaneField(MPIField):
         def size(s: float) -> tuple[int, int]:
             return max(2, round(height * s)), max(2, round(width * s))
 
-        if not 0 <= cfg.coarse_alpha_from <= 1:
-            raise ConfigError(f"coarse_alpha_from must be in [0, 1], got {cfg.coarse_alpha_from}")
         if not 1 <= cfg.base_groups <= num_planes:
             raise ConfigError(f"base_groups must be 1 to num_planes ({num_planes}), got {cfg.base_groups}")
         rgb = init_rgb.float().reshape(-1, *init_rgb.shape[-3:])  # [1 or G, 3, h, w]
@@ -197,12 +188,7 @@ class PyramidPlaneField(MPIField):
                 lvl[:, 3] = torch.logit(a[:, 0].clamp(0.01, 0.99))
             elif init_alpha is None and n == len(cfg.scales) - 1:
                 lvl[:, 3] = alpha0[:, None, None]
-            param = nn.Parameter(lvl)
-            if n == len(cfg.scales) - 1 and n > 0 and cfg.coarse_alpha_from > 0:
-                learnt = torch.ones(num_planes, 4, 1, 1, device=lvl.device)
-                learnt[: math.ceil(cfg.coarse_alpha_from * num_planes), 3] = 0
-                param.register_hook(lambda grad, learnt=learnt: grad * learnt)
-            self.levels.append(param)
+            self.levels.append(nn.Parameter(lvl))
 
     def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
         color, alpha = self._logits(g.transpose(0, 1))
