@@ -47,15 +47,20 @@ def test_gpu_run_finds_its_scripts() -> None:
     assert {"bench/gpudata.py", "bench/profile_job.py", "bench/explore_gpu.py", "cmc.cli"} <= set(targets)
 
 
+def import_without_the_service(*targets: str) -> subprocess.CompletedProcess:
+    """Import ``targets`` (script paths or module names) in a fresh Python where the packages of
+    ``ABSENT`` cannot be imported."""
+    args = [sys.executable, "-c", IMPORT_ALL, ",".join(ABSENT), *targets]
+    return subprocess.run(args, cwd=ROOT, capture_output=True, text=True, env=ENV, timeout=300)
+
+
 def test_gpu_run_scripts_import_without_the_service_packages() -> None:
-    args = [sys.executable, "-c", IMPORT_ALL, ",".join(ABSENT), *gpu_run_targets(), "tests/test_cuda.py"]
-    done = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, env=ENV, timeout=300)
+    done = import_without_the_service(*gpu_run_targets(), "tests/test_cuda.py")
     assert done.returncode == 0, done.stderr[-3000:]
 
 
 def test_the_check_catches_a_service_import(tmp_path: Path) -> None:
     script = tmp_path / "uses_worker.py"
     script.write_text("from worker.pipeline import JobStopped\n")
-    args = [sys.executable, "-c", IMPORT_ALL, ",".join(ABSENT), str(script)]
-    done = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, env=ENV, timeout=300)
+    done = import_without_the_service(str(script))
     assert done.returncode != 0 and "on a lent GPU machine" in done.stderr
