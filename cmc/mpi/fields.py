@@ -128,11 +128,6 @@ class PyramidFieldConfig:
     # probable plane) start as the background continued from nearby (cmc.method.model.hidden_layer_colours);
     # False: every group starts as the reference photo.
     hidden_colour_everywhere: bool = True
-    # > 0: a coarse surface sheet at this scale (relative to the plane extent): per texel a
-    # strength and a position in plane-index units, adding ``strength * exp(-(k - position)^2 /
-    # (2 sheet_width^2))`` to plane k's alpha logit, so a coarse surface may run across planes.
-    sheet_scale: float = 0.0
-    sheet_width: float = 1.0
 
 
 def plane_group_bounds(num_planes: int, groups: int) -> list[int]:
@@ -194,17 +189,6 @@ class PyramidPlaneField(MPIField):
             elif init_alpha is None and n == len(cfg.scales) - 1:
                 lvl[:, 3] = alpha0[:, None, None]
             self.levels.append(nn.Parameter(lvl))
-        self.sheet = None
-        if cfg.sheet_scale > 0:
-            hs, ws = size(cfg.sheet_scale)
-            if init_alpha is not None:
-                a = init_alpha.float()
-                trans = torch.cumprod(torch.cat([torch.ones_like(a[:1]), 1 - a[:-1]]), 0)
-                mode = (a * trans).argmax(0).float()[None, None]
-                pos = F.interpolate(mode, size=(hs, ws), mode="area")
-            else:
-                pos = torch.full((1, 1, hs, ws), (num_planes - 1) / 2, device=rgb.device)
-            self.sheet = nn.Parameter(torch.cat([torch.zeros_like(pos), pos], 1))  # [1, 2, hs, ws]
 
     def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
         color, alpha = self._logits(g.transpose(0, 1))
@@ -231,22 +215,7 @@ class PyramidPlaneField(MPIField):
         else:
             base, logits = self._sample_torch(grid, bounds)
         color, alpha = logits.split([3, 1], 1)  # type: ignore[union-attr]
-        alpha = alpha.squeeze(1)
-        if self.sheet is not None:
-            alpha = alpha + self._sheet_logits(grid)
-        return color + base, alpha
-
-    def _sheet_logits(self, grid: torch.Tensor) -> torch.Tensor:
-        """The surface sheet's alpha logits [D, R] at grid [D, R, 2]."""
-        D = grid.shape[0]
-        if plane_sampling.supported(grid, [self.sheet]):
-            sp = plane_sampling.sample_planes(grid, range(D), [self.sheet.expand(D, -1, -1, -1).contiguous()])
-            strength, pos = sp[:, 0], sp[:, 1]
-        else:
-            sp = F.grid_sample(self.sheet, grid.reshape(1, 1, -1, 2), align_corners=False).reshape(2, D, -1)
-            strength, pos = sp[0], sp[1]
-        k = torch.arange(D, dtype=grid.dtype, device=grid.device)[:, None]
-        return strength * torch.exp(-0.5 * ((k - pos) / self.cfg.sheet_width).square())
+        return color + base, alpha.squeeze(1)
 
     def _sample_torch(self, grid: torch.Tensor, bounds: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
         """The base colours [D, 3, R] and the summed levels [D, 4, R] at grid [D, R, 2], with
