@@ -11,7 +11,8 @@ import cmc.method.training
 from cmc.config import PRESETS, preset_config
 from cmc.data.datasets import synthetic_scene
 from cmc.method.eta import (
-    FAST_RAYS_PER_VIEW,
+    CROSS_VIEW_STEP_RATIO,
+    FAST_INPUT_RAYS_PER_MPI,
     PRESET_STEPS,
     REFERENCE_STEP_S,
     TrainingETA,
@@ -20,6 +21,7 @@ from cmc.method.eta import (
     final_bake_s,
     first_full_step,
     full_cost_ratio,
+    input_rays_per_mpi,
     step_s_from_build,
 )
 from cmc.method.training import Trainer
@@ -85,7 +87,8 @@ def test_first_step_counts_only_until_its_phase_has_another() -> None:
 
 def test_fit_reports_the_phase_aware_estimate(monkeypatch) -> None:
     """Trainer.fit's Progress.eta_s, on a fake clock: recon-only steps take 1 s, full ones 1.4 s."""
-    cfg = preset_config("fast", steps=100, rays_per_view=64, unseen_rays=64)
+    # every MPI renders every input ray: the full phase renders 4/3 the rays of the first
+    cfg = preset_config("fast", steps=100, rays_per_view=64, unseen_rays=64, cross_view_rays=1.0)
     cfg = replace(cfg, model=replace(cfg.model, num_planes=4))
     trainer = Trainer(synthetic_scene(num_views=3, width=32, height=24), cfg)
     first_full = first_full_step(cfg)
@@ -119,25 +122,33 @@ def test_fit_reports_the_phase_aware_estimate(monkeypatch) -> None:
 
 def test_cost_model_follows_the_config() -> None:
     fast = preset_config("fast")
-    assert full_cost_ratio(fast, 3) == pytest.approx((3 * 6144 + 2048) / (3 * 6144))
+    # each MPI renders its own photo's 6144 rays and half of each other photo's
+    assert input_rays_per_mpi(fast, 3) == 2 * 6144 and input_rays_per_mpi(fast, 5) == 3 * 6144
+    assert full_cost_ratio(fast, 3) == pytest.approx((2 * 6144 + 2048) / (2 * 6144))
+    paper = preset_config("paper")
+    assert full_cost_ratio(paper, 3) == pytest.approx((3 * 1024 + 1024) / (3 * 1024))  # every MPI every ray
     silent = replace(fast, loss=replace(fast.loss, lambda_ac=0.0, lambda_dc=0.0))
     assert full_cost_ratio(silent, 3) == 1.0  # no unseen poses are rendered then
     for steps in (1, 7, 10, 400):
         cfg = preset_config("fast", steps=steps)
         # the first step that Trainer.compute_losses runs with the full loss
         assert first_full_step(cfg) == next(s for s in range(steps + 1) if s >= cfg.loss.recon_only_fraction * steps)
-    assert bake_steps(504, 378, 1.2, 3, 6144) == pytest.approx(7.09, abs=0.01)  # fern, fast
-    assert bake_steps(504, 378, 1.2, 3, 2048) == pytest.approx(3 * bake_steps(504, 378, 1.2, 3, 6144))
-    assert bake_steps(1008, 756, 1.2, 3, 2048) == pytest.approx(4 * bake_steps(504, 378, 1.2, 3, 2048))
-    assert build_steps(504, 378) == 8.5 and build_steps(252, 189) == pytest.approx(8.5 / 4)
-    assert build_steps(1008, 756) == 8.5  # the sweep's grid is capped: no more than fern's
+    assert bake_steps(504, 378, 1.2, 3 * 6144) == pytest.approx(7.09, abs=0.01)  # fern, every MPI every ray
+    assert bake_steps(504, 378, 1.2, 6144) == pytest.approx(3 * bake_steps(504, 378, 1.2, 3 * 6144))
+    assert bake_steps(1008, 756, 1.2, 6144) == pytest.approx(4 * bake_steps(504, 378, 1.2, 6144))
+    fern_build = 8.5 / CROSS_VIEW_STEP_RATIO  # in today's steps, as many seconds as 8.5 steps before
+    assert build_steps(504, 378) == pytest.approx(fern_build) and build_steps(252, 189) == pytest.approx(fern_build / 4)
+    assert build_steps(1008, 756) == pytest.approx(fern_build)  # the sweep's grid is capped: no more than fern's
     # a machine that builds fern's model in twice the reference's time trains twice as slowly
-    assert step_s_from_build(2 * 8.5 * REFERENCE_STEP_S, 504, 378) == pytest.approx(2 * REFERENCE_STEP_S)
-    assert step_s_from_build(8.5, 252, 189) == pytest.approx(4.0)  # a quarter of the pixels, a quarter of the sweep
+    reference_build_s = fern_build * REFERENCE_STEP_S
+    assert reference_build_s == pytest.approx(8.5 * 0.72, rel=0.01)  # the build measured before
+    assert step_s_from_build(2 * reference_build_s, 504, 378) == pytest.approx(2 * REFERENCE_STEP_S)
+    # a quarter of the pixels, a quarter of the sweep
+    assert step_s_from_build(fern_build, 252, 189) == pytest.approx(4.0)
     assert final_bake_s(7.0, 1.5) == 10.5  # no preview yet: the bake in steps
     assert final_bake_s(7.0, 1.5, 12.0) == final_bake_s(7.0, 0.06, 12.0) == 12.0  # the preview's measured bake
 
 
 def test_preset_steps_match_the_presets() -> None:
     assert PRESET_STEPS == {name: preset_config(name).steps for name in PRESETS}
-    assert FAST_RAYS_PER_VIEW == preset_config("fast").rays_per_view
+    assert FAST_INPUT_RAYS_PER_MPI == input_rays_per_mpi(preset_config("fast"), 3)

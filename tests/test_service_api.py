@@ -178,7 +178,7 @@ def test_eta_seconds_covers_the_rest_of_the_job(ready) -> None:
     """eta_seconds is the whole job's: while estimating poses it holds the training to come, in
     every later stage it is set, and the bake has an estimate of its own."""
     from cmc.config import preset_config
-    from cmc.method.eta import FAST_RAYS_PER_VIEW, bake_steps, reference_training_s, step_s_from_build
+    from cmc.method.eta import bake_steps, input_rays_per_mpi, reference_training_s, step_s_from_build
 
     client, sid, _, _ = ready
     writes = client.job_writes
@@ -191,7 +191,8 @@ def test_eta_seconds_covers_the_rest_of_the_job(ready) -> None:
     # build's own pace predicts (cmc.method.eta.step_s_from_build).
     rec = client.app.state.services.store.get(sid)
     built_step_s = step_s_from_build(rec.stats["train"]["build_seconds"], 96, 72)
-    bake_cost = bake_steps(96, 72, preset_config("fast").model.margin, 3, FAST_RAYS_PER_VIEW)
+    fast = preset_config("fast")
+    bake_cost = bake_steps(96, 72, fast.model.margin, input_rays_per_mpi(fast, 3))
     expected = (25 + bake_cost * (1 + PREVIEW_TEXEL_SCALE**2)) * built_step_s
     assert any(s == "training" and p == 0.0 and eta == pytest.approx(expected, rel=0.02) for s, p, eta in writes)
     bake = [(p, eta) for status, p, eta in writes if status == "baking"]

@@ -11,6 +11,7 @@ import torch
 from cmc.config import TrainConfig, preset_config
 from cmc.data.datasets import DEFAULT_LAYERS, SceneError, render_layers, synthetic_cameras, synthetic_scene
 from cmc.eval.metrics import psnr
+from cmc.method import training
 from cmc.method.training import Trainer, TrainingCancelled, load_model, lr_at
 
 W, H = 64, 48
@@ -222,3 +223,27 @@ def test_permutation_sampling_draws_every_pixel_once_before_any_twice(scene, ray
     assert not torch.equal(trainer._input_pixels(gen, 1, 0)[0], draws[0])
     idx, uv = draws[0], trainer._input_pixels(gen, 0, 0)[1]
     assert torch.equal(uv, torch.stack([idx % W, idx // W], -1).float() + 0.5)
+
+
+@pytest.mark.parametrize("share", [1.0, 0.5])
+def test_the_other_views_mpis_render_a_share_of_each_views_rays(scene, monkeypatch, share):
+    """``cross_view_rays``: MPI i renders every ray drawn from its own photo and, of each other
+    photo's rays, the share asked for, evenly spread over the batch (every other ray at 0.5) and
+    the same rays in every other MPI; the losses stay finite and the consistency terms run."""
+    calls = []
+    real = training.render_ray_groups
+    monkeypatch.setattr(
+        training,
+        "render_ray_groups",
+        lambda f, fr, groups, *a: calls.append([g[2] for g in groups]) or real(f, fr, groups, *a),
+    )
+    trainer = Trainer(scene, tiny(rays_per_view=256, cross_view_rays=share))
+    losses = trainer.compute_losses(trainer.cfg.steps - 1)
+    assert len(calls) == 3 and all(len(uvs) == 4 for uvs in calls)  # three input views, one unseen pose
+    for i, uvs in enumerate(calls):
+        for j in range(3):
+            own = calls[j][j]
+            assert len(own) == 256
+            assert torch.equal(uvs[j], own if i == j else own[:: round(1 / share)])
+        assert torch.equal(uvs[3], calls[0][3])
+    assert all(np.isfinite(v) for v in losses.floats().values()) and losses.dc_input > 0

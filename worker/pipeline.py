@@ -342,14 +342,15 @@ class _TrainPhase:
 
     def __init__(self, ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path):
         from cmc.data.datasets import load_scene_folder
-        from cmc.method.eta import REFERENCE_STEP_S, bake_steps, build_steps
+        from cmc.method.eta import REFERENCE_STEP_S, bake_steps, build_steps, input_rays_per_mpi
         from cmc.serving.baking import PREVIEW_TEXEL_SCALE
 
         self.ctx, self.rec, self.hb, self.layout = ctx, rec, hb, SceneLayout(rec.id)
         self.scene = load_scene_folder(scene_dir)
         self.cfg = cfg = _job_config(rec.options, ctx.settings)
         cams = self.scene.cameras
-        self.bake_cost = bake_steps(cams.width, cams.height, cfg.model.margin, len(self.scene), cfg.rays_per_view)
+        rays = input_rays_per_mpi(cfg, len(self.scene))
+        self.bake_cost = bake_steps(cams.width, cams.height, cfg.model.margin, rays)
         self.build_cost = build_steps(cams.width, cams.height)
         self.bake_s: float | None = None  # the final bake's seconds as this attempt's preview bake predicts
         at = ctx.settings.preview_at

@@ -13,11 +13,13 @@ Stages that have not run yet are estimated from a reference run until they measu
 speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2-core CPU.
 
 * :data:`REFERENCE_POSES_S`: structure from motion, 12.7 s (median of 3, bench/reports/history/poses_fern.md).
-* :data:`REFERENCE_STEP_S`: a training step, 0.72 s in ``cmc serve`` (bench/reports/history/job_timeline_fern_cpu.json:
-  the train phase of a 300-step job took 159 s more than that of an 80-step one, with 4096 rays
-  a view; with the preset's 6144, 0.74 s on the faster machine of
-  bench/reports/history/job_timeline_fern_cpu_rays6144.json). A GPU trains much faster: until
-  training has run a step, a job's estimate is pessimistic there.
+* :data:`REFERENCE_STEP_S`: a training step, 0.55 s in ``cmc serve``: 0.72 s while every MPI
+  rendered every input ray (bench/reports/history/job_timeline_fern_cpu.json: the train phase of
+  a 300-step job took 159 s more than that of an 80-step one, with 4096 rays a view; with 6144,
+  0.74 s on the faster machine of bench/reports/history/job_timeline_fern_cpu_rays6144.json),
+  times 0.76, what rendering half of the other photos' rays (``cross_view_rays=0.5``) made of a
+  step (:data:`CROSS_VIEW_STEP_RATIO`). A GPU trains much faster: until training has run a step,
+  a job's estimate is pessimistic there.
 * The model build (the plane sweeps), in training steps (:func:`build_steps`), and baking
   (:func:`bake_steps`): modelled from the same kind of jobs. A job that bakes a preview measures its
   own bake speed there (:func:`final_bake_s`), and until it has trained a step it takes its step time
@@ -35,12 +37,16 @@ if TYPE_CHECKING:
     from cmc.config import TrainConfig
 
 REFERENCE_POSES_S = 12.7
-REFERENCE_STEP_S = 0.72
-# TrainConfig.steps of each preset and the fast preset's rays_per_view (cmc.config.preset_config
-# needs torch to import; the pose-estimation worker does not load it). tests/test_eta.py checks
-# that they agree.
+# A step of the fast preset over one with every MPI rendering every input ray, on fern's 2-core
+# CPU (bench/reports/current/train_step_cross_view_rays_cpu.json: reconstruction-only 0.73, full
+# loss 0.77, 0.76 over a job's steps): the reference's step and build below were measured before.
+CROSS_VIEW_STEP_RATIO = 0.76
+REFERENCE_STEP_S = round(0.72 * CROSS_VIEW_STEP_RATIO, 2)
+# TrainConfig.steps of each preset and the input rays each MPI of the fast preset renders a step
+# from three photos (input_rays_per_mpi; cmc.config.preset_config needs torch to import, the
+# pose-estimation worker does not load it). tests/test_eta.py checks that they agree.
 PRESET_STEPS = {"fast": 300, "paper": 20000}
-FAST_RAYS_PER_VIEW = 6144
+FAST_INPUT_RAYS_PER_MPI = 12288
 
 
 def first_full_step(cfg: TrainConfig) -> int:
@@ -49,26 +55,33 @@ def first_full_step(cfg: TrainConfig) -> int:
     return math.ceil(cfg.loss.recon_only_fraction * cfg.steps)
 
 
+def input_rays_per_mpi(cfg: TrainConfig, num_views: int) -> float:
+    """Input-view rays each MPI renders in a step: every ray drawn from its own photo and the share
+    ``cross_view_rays`` of each other photo's (``Trainer.compute_losses``)."""
+    return cfg.rays_per_view * (1 + (num_views - 1) * cfg.cross_view_rays)
+
+
 def full_cost_ratio(cfg: TrainConfig, num_views: int) -> float:
     """Rays rendered by a full-loss step over those of a reconstruction-only step (>= 1)."""
-    recon = num_views * cfg.rays_per_view
+    recon = input_rays_per_mpi(cfg, num_views)
     lc = cfg.loss
     unseen = cfg.unseen_poses * cfg.unseen_rays if (lc.lambda_ac > 0 or lc.lambda_dc > 0) else 0
     return (recon + unseen) / recon
 
 
-def bake_steps(width: int, height: int, margin: float, num_views: int, rays_per_view: int) -> float:
+def bake_steps(width: int, height: int, margin: float, rays_per_mpi: float) -> float:
     """Baking's cost in training steps (a model fitted to one kind of job), until a preview's bake
     has measured it.
 
     Per plane of every MPI the bake evaluates the field once at each of ``margin^2 * W * H``
-    texels and writes it; a step evaluates it at ``num_views * rays_per_view`` samples, forward and
-    backward. Fern at 504x378 with the fast preset's 6144 rays a view: about 7 steps (the final
+    texels and writes it; a step evaluates it at ``rays_per_mpi`` samples
+    (:func:`input_rays_per_mpi`), forward and backward. Fern at 504x378 with 6144 rays a view,
+    each rendered by all three MPIs (18432 a step and MPI): about 7 steps (the final
     bake 11.8-12.3 s in ``cmc serve``, publishing included, against the jobs' mean steps of 1.7-2.0
     s, bench/reports/history/job_timeline_fern_cpu_bake_thread.json; 8.9 reconstruction-only
     steps of a process doing nothing else, bench/reports/current/bake_time_cpu.json).
     """
-    return margin**2 * width * height / (2.1 * num_views * rays_per_view)
+    return margin**2 * width * height / (2.1 * rays_per_mpi)
 
 
 def build_steps(width: int, height: int) -> float:
@@ -76,9 +89,10 @@ def build_steps(width: int, height: int) -> float:
     training steps (a model fitted to one kind of job): fern at 504x378, ``fast``, in ``cmc serve``
     on 2-core CPUs, ten jobs on three machines of 2026-11-28 (builds of 6.6-15.2 s against the
     jobs' mean steps of 0.79-2.03 s): 7.3-10.3 steps, 8.5 in the middle (bench/job_timeline.md,
-    last section); in proportion to the photos' pixels up to that size, no more above it (the
-    sweep's grid is capped: ``SweepConfig.max_texels``)."""
-    return 8.5 * min(1.0, width * height / (504 * 378))
+    last section), steps then of every MPI rendering every input ray: 8.5 / 0.76 of today's
+    (:data:`CROSS_VIEW_STEP_RATIO`); in proportion to the photos' pixels up to that size, no more
+    above it (the sweep's grid is capped: ``SweepConfig.max_texels``)."""
+    return 8.5 / CROSS_VIEW_STEP_RATIO * min(1.0, width * height / (504 * 378))
 
 
 def step_s_from_build(build_s: float, width: int, height: int) -> float:
@@ -102,7 +116,7 @@ def final_bake_s(bake_cost: float, step_s: float, preview_estimate_s: float | No
 def reference_training_s(steps: int) -> float:
     """Seconds to build the model, train ``steps`` steps and bake, at the reference's speed
     (fern, ``fast``)."""
-    return (build_steps(504, 378) + steps + bake_steps(504, 378, 1.2, 3, FAST_RAYS_PER_VIEW)) * REFERENCE_STEP_S
+    return (build_steps(504, 378) + steps + bake_steps(504, 378, 1.2, FAST_INPUT_RAYS_PER_MPI)) * REFERENCE_STEP_S
 
 
 # A phase's step time is the mean of its last this many steps: steps get slower as training goes

@@ -38,7 +38,7 @@ from cmc.method.losses import (
     robust_depth_consistency,
 )
 from cmc.method.model import CMCModel
-from cmc.mpi.rendering import render_ray_groups
+from cmc.mpi.rendering import RayOutput, render_ray_groups
 
 CHECKPOINT_VERSION = 1
 
@@ -125,6 +125,11 @@ class LossTerms:
         return {f.name: float(getattr(self, f.name).detach()) for f in fields(self)}
 
 
+def _rays(o: RayOutput, keep: torch.Tensor) -> RayOutput:
+    """The rays ``keep`` of ``o``."""
+    return RayOutput(o.rgb[keep], o.depth[keep], o.acc[keep], None if o.weights is None else o.weights[keep])
+
+
 class Trainer:
     """Trains a :class:`CMCModel` on a scene's input views.
 
@@ -209,25 +214,33 @@ class Trainer:
         rng = np.random.default_rng([cfg.seed, step])
         fields, frames = list(self.model.fields), self.model.frames
         full = step >= lc.recon_only_fraction * cfg.steps
-        # Target cameras of this step: every input view, then the unseen poses.
-        groups, targets = [], []
+        # Target cameras of this step: every input view, then the unseen poses. MPI i renders
+        # every ray drawn from its own photo and the share cfg.cross_view_rays of each other
+        # photo's: shared[j] indexes that share of view j's rays, evenly spread over the batch.
+        groups, targets, shared = [], [], []
         for j in range(len(self.scene)):
             idx, uv = self._input_pixels(gen, j, step)
+            m = max(1, round(cfg.cross_view_rays * len(idx)))
+            shared.append(torch.arange(m, device=self.device) * len(idx) // m)
             groups.append((self.K[j], self.poses[j], uv))
             targets.append(self.images[j][idx])
+        n = len(self.scene)
         use_unseen = full and (lc.lambda_ac > 0 or lc.lambda_dc > 0)
         for _ in range(cfg.unseen_poses if use_unseen else 0):
             pose = sample_virtual_pose(self.scene.cameras.world_from_cam, rng, cfg.unseen_jitter)
             P = torch.as_tensor(pose, dtype=torch.float32, device=self.device)
             groups.append((self.K[0], P, self._random_pixels(gen, cfg.unseen_rays)[1]))
+
+        def rays_of_mpi(i: int) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+            return [(K, P, uv if t == i or t >= n else uv[shared[t]]) for t, (K, P, uv) in enumerate(groups)]
+
         # per_mpi[i][t]: MPI i's render of target t (one field query per MPI).
-        unseen_grad = [1.0] * (len(groups) - len(self.scene))
+        unseen_grad = [1.0] * (len(groups) - n)
         per_mpi = [
-            render_ray_groups(f, fr, groups, self._colour_grads(i) + unseen_grad, cfg.colour_grad_min_weight)
+            render_ray_groups(f, fr, rays_of_mpi(i), self._colour_grads(i) + unseen_grad, cfg.colour_grad_min_weight)
             for i, (f, fr) in enumerate(zip(fields, frames, strict=True))
         ]
         by_target = list(zip(*per_mpi, strict=True))
-        n = len(self.scene)
         zero = torch.zeros((), device=self.device)
         exposure = self.model.exposure
         if exposure is not None:
@@ -236,7 +249,16 @@ class Trainer:
             for t in range(len(by_target)):
                 dst = t if t < n else None
                 by_target[t] = [replace(o, rgb=exposure.convert(o.rgb, i, dst)) for i, o in enumerate(by_target[t])]
-        mse = torch.stack([reconstruction_loss(by_target[j], targets[j]) for j in range(n)]).mean()
+        # Every MPI against the pixels of photo j it rendered; the MPIs' depths compared on the
+        # rays of photo j that all of them rendered.
+        mse = torch.stack(
+            [
+                reconstruction_loss([o], targets[j] if i == j else targets[j][shared[j]])
+                for j in range(n)
+                for i, o in enumerate(by_target[j])
+            ]
+        ).mean()
+        at_shared = [[_rays(o, shared[j]) if i == j else o for i, o in enumerate(by_target[j])] for j in range(n)]
         if lc.depth_consistency == "cauchy":
             scale = 1.0 / (self.model.cfg.num_planes - 1)
             dc_loss = lambda o: robust_depth_consistency(o, self.model.near, self.model.far, scale)  # noqa: E731
@@ -247,7 +269,7 @@ class Trainer:
         return LossTerms.weighted(
             lc,
             mse=mse,
-            dc_input=torch.stack([dc_loss(by_target[j]) for j in range(n)]).mean()
+            dc_input=torch.stack([dc_loss(at_shared[j]) for j in range(n)]).mean()
             if full and lc.lambda_dc_input > 0
             else zero,
             ac=torch.stack([appearance_consistency(o) for o in unseen]).mean() if unseen else zero,
