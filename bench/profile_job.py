@@ -17,7 +17,7 @@ training loop syncs the device three times a step, which the service's loop does
 
 Usage (repository root):
     PYTHONPATH=. python bench/profile_job.py --data ../shared/datasets/llff/fern --device cpu \
-        --out bench/reports/current/profile_job_fern_cpu_rays6144.json
+        --out bench/reports/current/profile_job_fern_cpu_cross_view.json
 prints a markdown table (seconds and share per stage) and writes it with the raw timings as JSON;
     python bench/profile_job.py --update-md bench/PROFILE.md REPORT.json [REPORT.json ...]
 rewrites the table between ``<!-- profile-table -->`` and ``<!-- /profile-table -->`` in that

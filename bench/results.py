@@ -21,16 +21,16 @@ HERE = Path(__file__).resolve().parent
 REPORTS = HERE / "reports"
 
 # The current report of each kind (in reports/current).
-SCENE_REPORTS = {s: f"perm_test_{s}.json" for s in ("fern", "room", "trex")}
-VAL_REPORTS = {s: f"perm_val_{s}.json" for s in ("fern", "room", "trex")}
-SYNTHETIC_REPORT = "perm_synthetic.json"
+SCENE_REPORTS = {s: f"cross05_test_{s}.json" for s in ("fern", "room", "trex")}
+VAL_REPORTS = {s: f"cross05_val_{s}.json" for s in ("fern", "room", "trex")}
+SYNTHETIC_REPORT = "cross05_synthetic.json"
 POSE_REPORTS = {
     "fern": "poses_e2e_fern_wide.json",
     "room": "poses_e2e_room_wide.json",
     "trex": "poses_e2e_trex_exif_wide.json",
 }
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
-PROFILE_REPORT = "profile_job_fern_cpu_rays6144.json"
+PROFILE_REPORT = "profile_job_fern_cpu_cross_view.json"
 PREVIEW_REPORT = "preview_quality_fern_half.json"
 TIMELINE_REPORT = "job_timeline_fern_cpu_bake_eta.json"
 BUILD_REPORT = "model_build_time_fern_fused.json"
