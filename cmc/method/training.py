@@ -38,7 +38,7 @@ from cmc.method.losses import (
     robust_depth_consistency,
 )
 from cmc.method.model import CMCModel
-from cmc.mpi.rendering import RayOutput, render_ray_groups
+from cmc.mpi.rendering import render_ray_groups
 
 CHECKPOINT_VERSION = 1
 
@@ -123,11 +123,6 @@ class LossTerms:
     def floats(self) -> dict[str, float]:
         """Every term as a float, by name (``total`` included)."""
         return {f.name: float(getattr(self, f.name).detach()) for f in fields(self)}
-
-
-def _rays(o: RayOutput, keep: torch.Tensor) -> RayOutput:
-    """The rays ``keep`` of ``o``."""
-    return RayOutput(o.rgb[keep], o.depth[keep], o.acc[keep], None if o.weights is None else o.weights[keep])
 
 
 class Trainer:
@@ -251,14 +246,15 @@ class Trainer:
                 by_target[t] = [replace(o, rgb=exposure.convert(o.rgb, i, dst)) for i, o in enumerate(by_target[t])]
         # Every MPI against the pixels of photo j it rendered; the MPIs' depths compared on the
         # rays of photo j that all of them rendered.
+        shared_targets = [targets[j][shared[j]] for j in range(n)]
         mse = torch.stack(
             [
-                reconstruction_loss([o], targets[j] if i == j else targets[j][shared[j]])
+                reconstruction_loss([o], targets[j] if i == j else shared_targets[j])
                 for j in range(n)
                 for i, o in enumerate(by_target[j])
             ]
         ).mean()
-        at_shared = [[_rays(o, shared[j]) if i == j else o for i, o in enumerate(by_target[j])] for j in range(n)]
+        at_shared = [[o.select(shared[j]) if i == j else o for i, o in enumerate(by_target[j])] for j in range(n)]
         if lc.depth_consistency == "cauchy":
             scale = 1.0 / (self.model.cfg.num_planes - 1)
             dc_loss = lambda o: robust_depth_consistency(o, self.model.near, self.model.far, scale)  # noqa: E731

@@ -117,6 +117,11 @@ class RayOutput:
     acc: torch.Tensor
     weights: torch.Tensor | None = None
 
+    def select(self, rays: torch.Tensor) -> RayOutput:
+        """The rays of index ``rays`` (any index tensor over R)."""
+        weights = None if self.weights is None else self.weights[rays]
+        return RayOutput(self.rgb[rays], self.depth[rays], self.acc[rays], weights)
+
 
 def composite(
     rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, colour_grad_min_weight: float = 0.0
