@@ -39,7 +39,7 @@ from cmc.mpi.rendering import RayOutput, blend_selection, render_texture_image
 from cmc.serving.baking import MANIFEST, BakedScene, bake
 
 
-def seen_maps(rgba: torch.Tensor, margin: float) -> torch.Tensor:
+def seen_maps(rgba: torch.Tensor, margin: tuple[float, float]) -> torch.Tensor:
     """[D, h, w]: per plane texel, the share of the reference camera's ray that reaches it
     (transmittance through the planes in front, nearest first) where the texel lies inside the
     reference photo, 0 in the margin. ``rgba`` [D, 4, h, w] straight alpha."""
@@ -48,7 +48,7 @@ def seen_maps(rgba: torch.Tensor, margin: float) -> torch.Tensor:
     D, h, w = alpha.shape
     gy = (torch.arange(h, dtype=torch.float32) + 0.5) / h * 2 - 1
     gx = (torch.arange(w, dtype=torch.float32) + 0.5) / w * 2 - 1
-    inside = ((gy.abs()[:, None] <= 1 / margin) & (gx.abs()[None, :] <= 1 / margin)).float()
+    inside = ((gy.abs()[:, None] <= 1 / margin[1]) & (gx.abs()[None, :] <= 1 / margin[0])).float()
     return trans * inside
 
 

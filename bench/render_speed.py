@@ -248,7 +248,7 @@ def main() -> None:
             "mpis": len(baked.frames),
             "planes_per_mpi": len(frame.depths),
             "tile": list(baked.textures[0].shape[1:3]),
-            "margin": frame.margin,
+            "margin": list(frame.margin),
             **build,
         },
         "memory": memory,

@@ -88,7 +88,7 @@ def test_manifest_describes_the_atlases(trained, tmp_path):
     out = bake(model, tmp_path / "b", on_progress=lambda done, total: reported.append((done, total)))
     assert reported == [(1, 3), (2, 3), (3, 3)]  # after each MPI is evaluated
     m = json.loads((out / "mpi.json").read_text())
-    assert m["format"] == "cmc-mpi" and m["version"] == 1 and m["convention"] == "opencv"
+    assert m["format"] == "cmc-mpi" and m["version"] == 2 and m["convention"] == "opencv"
     # How renders sample colour is the field's: `fast` samples its base colours bicubically,
     # `paper`'s MLP is baked to texels that renders sample bilinearly.
     expected = "bicubic" if isinstance(model.fields[0], PyramidPlaneField) else "bilinear"
@@ -130,11 +130,26 @@ def test_texel_grid_evaluation_matches_its_slow_twin(trained):
             assert (fast[-1, 3] == 1).all() and fast.min() >= 0 and fast.max() <= 1
 
 
+def test_version_1_folders_read_one_margin_for_both_axes(trained, tmp_path):
+    """A folder baked before the margins were per axis (``cmc-mpi`` v1: one number) still loads:
+    that margin on both axes, the geometry it was baked with."""
+    _, model = trained
+    out = bake(model, tmp_path / "b")
+    m = json.loads((out / "mpi.json").read_text())
+    assert [e["margin"] for e in m["mpis"]] == [list(f.margin) for f in model.frames]
+    assert model.frames[0].margin[0] != model.frames[0].margin[1]  # 64 x 48 plus 6 and 5 pixels a side
+    m["version"] = 1
+    for e in m["mpis"]:
+        e["margin"] = 1.2
+    (out / "mpi.json").write_text(json.dumps(m))
+    assert [f.margin for f in BakedScene.load(out).frames] == [(1.2, 1.2)] * 3
+
+
 def test_missing_or_foreign_folders_are_refused(tmp_path):
     with pytest.raises(BakedFormatError, match="not a baked MPI folder"):
         BakedScene.load(tmp_path)
     (tmp_path / "mpi.json").write_text(json.dumps({"format": "other", "version": 7}))
-    with pytest.raises(BakedFormatError, match="expected cmc-mpi v1"):
+    with pytest.raises(BakedFormatError, match="expected cmc-mpi v2"):
         BakedScene.load(tmp_path)
 
 

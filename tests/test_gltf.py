@@ -78,9 +78,9 @@ def test_glb_holds_the_nearest_mpi_planes_with_their_textures(baked) -> None:
     (_, cols), (th, tw) = entry["grid"], entry["tile"]
     atlas = np.asarray(Image.open(folder / entry["atlas"]).convert("RGBA"))
     ref = Cameras(np.array(entry["K"])[None], np.array(entry["world_from_cam"])[None], W, H)
-    margin = entry["margin"]
-    lo, hi = (1 - margin) / 2, (1 + margin) / 2  # the extent's corners, in image sizes
-    expected_uv = [[lo * W, lo * H], [hi * W, lo * H], [hi * W, hi * H], [lo * W, hi * H]]
+    (mx, my) = entry["margin"]
+    x0, x1, y0, y1 = (1 - mx) / 2 * W, (1 + mx) / 2 * W, (1 - my) / 2 * H, (1 + my) / 2 * H  # the extent's corners
+    expected_uv = [[x0, y0], [x1, y0], [x1, y1], [x0, y1]]
     seen_depths = []
     for prim in mesh.primitives:
         material = g.materials[prim.material]

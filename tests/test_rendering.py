@@ -19,6 +19,7 @@ from cmc.mpi.fields import MLPField, MLPFieldConfig, PyramidFieldConfig, Pyramid
 from cmc.mpi.rendering import (
     MPIFrame,
     composite,
+    pixel_aligned_margin,
     render_image,
     render_ray_groups,
     render_rays,
@@ -45,7 +46,7 @@ def make_frame(dtype: torch.dtype = torch.float32, world_from_ref: np.ndarray = 
         torch.as_tensor(plane_depths(NEAR, FAR, D), dtype=dtype),
         W,
         H,
-        MARGIN,
+        frame.margin,
     )
 
 
@@ -199,6 +200,30 @@ def test_render_texture_image_matches_ray_reference(target: str) -> None:
     torch.testing.assert_close(fast.depth[keep], slow.depth[keep], rtol=0, atol=1e-9 * FAR)
 
 
+@pytest.mark.parametrize("size", [(504, 378), (21, 15), (97, 64)])
+def test_the_reference_view_reads_texel_centres(size) -> None:
+    """The plane extent adds whole pixels on each side (:func:`pixel_aligned_margin`), so each
+    pixel centre of the reference view is a texel centre: rendered at its own camera, an MPI
+    gives back its textures' texels exactly, with no resampling between texels (which would
+    low-pass the photo's finest detail)."""
+    width, height = size
+    K = intrinsics(0.8 * width, 0.8 * width, width / 2, height / 2)
+    frame = MPIFrame.create(K, np.eye(4), 1.5, 9.0, 3, width, height, 1.2)
+    h, w = frame.extent
+    px, py = (w - width) // 2, (h - height) // 2
+    assert frame.margin == pixel_aligned_margin(width, height, 1.2) and abs(frame.margin[0] - 1.2) <= 1 / width
+    assert (w - width, h - height) == (2 * px, 2 * py)
+    g = frame.grid_from_pixels(pixel_centers(width, height))
+    texel = (g + 1) / 2 * g.new_tensor([w, h]) - 0.5
+    torch.testing.assert_close(texel, texel.round(), rtol=0, atol=1e-3)
+    rgba = random_premultiplied(3, h, w, 4, torch.float32)
+    out = render_texture_image(rgba, frame, frame.K, frame.world_from_ref, width, height)
+    crop = rgba[:, :, py : py + height, px : px + width]
+    trans = torch.cumprod(torch.cat([torch.ones_like(crop[:1, 3]), 1 - crop[:-1, 3]]), 0)
+    expected = (crop[:, :3] * trans[:, None]).sum(0)  # premultiplied, front to back
+    torch.testing.assert_close(out.rgb.reshape(height, width, 3), expected.permute(1, 2, 0), rtol=0, atol=5e-4)
+
+
 def test_render_texture_image_matches_reference_at_real_size() -> None:
     """A baked fern-sized MPI (504 x 378 image, 48 planes, margin 1.2, f = 407 px, depths 1.2 to
     25): the fast path agrees with its twin within the baked renderer's accuracy bound (colour
@@ -226,7 +251,9 @@ def test_render_texture_image_matches_reference_at_real_size() -> None:
         # every implementation, the slow twin included, but not the depth per unit coverage.
         depth_fast, depth_slow = (o.depth[covered] / o.acc[covered] for o in (fast, slow))
         assert float(((depth_fast - depth_slow).abs() / depth_slow).max()) <= 1e-3
-        torch.testing.assert_close(fast.acc, slow.acc, rtol=0, atol=1e-4)
+        # Coverage: at a faintly covered edge pixel each float32 path lies up to 1e-4 from the
+        # float64 render, the two up to twice that apart.
+        torch.testing.assert_close(fast.acc, slow.acc, rtol=0, atol=2e-4)
 
 
 # --- compositing known answers -------------------------------------------------------------------

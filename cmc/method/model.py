@@ -56,7 +56,7 @@ def padded_reference(image: np.ndarray, frame: MPIFrame) -> torch.Tensor:
     dev = frame.K.device
     img = torch.as_tensor(image, dtype=torch.float32, device=dev).permute(2, 0, 1)[None]
     h, w = frame.extent
-    grid = texel_grid(h, w, dev)[None] * frame.margin  # plane grid -> image grid coordinates
+    grid = texel_grid(h, w, dev)[None] * torch.tensor(frame.margin, device=dev)  # plane grid -> image grid coordinates
     return F.grid_sample(img, grid, align_corners=False, padding_mode="border")[0]
 
 
@@ -85,7 +85,7 @@ def sweep_statistics(frames: list[MPIFrame], images: torch.Tensor, cfg: ModelCon
     for i, fr in enumerate(frames):
         probs = sweep_probabilities(frames, images, i, cfg, supersample=False)
         h, w = probs.shape[-2:]
-        inside = (texel_grid(h, w, probs.device).abs() <= 1 / fr.margin).all(-1)
+        inside = (texel_grid(h, w, probs.device).abs() <= 1 / torch.tensor(fr.margin, device=probs.device)).all(-1)
         p = probs[:, inside].double()  # [D, T]
         per_plane = p.sum(1)
         peak, best = p.max(0)

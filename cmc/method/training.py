@@ -40,7 +40,8 @@ from cmc.method.losses import (
 from cmc.method.model import CMCModel
 from cmc.mpi.rendering import render_ray_groups
 
-CHECKPOINT_VERSION = 1
+# 2: texture shapes follow the pixel-aligned plane extent (cmc.mpi.rendering.pixel_aligned_margin)
+CHECKPOINT_VERSION = 2
 
 
 class TrainingCancelled(Exception):

@@ -43,8 +43,10 @@ class MPIFrame:
         depths: [D] plane depths in the reference camera, nearest first (uniform in disparity,
             or crowded where the scene's surfaces are: :func:`cmc.geometry.planes.content_plane_depths`).
         width, height: reference image size in pixels.
-        margin: the planes extend ``margin`` times the image's size about its centre, so that
-            target views looking past the reference image's border still see plane content.
+        margin: (x, y) the planes extend ``margin`` times the image's width and height about
+            its centre, so that target views looking past the reference image's border still see
+            plane content. :meth:`create` makes each a whole number of pixels on both sides, so
+            the full-resolution texel grid has its texel centres on the photo's pixel centres.
     """
 
     K: torch.Tensor
@@ -52,7 +54,7 @@ class MPIFrame:
     depths: torch.Tensor
     width: int
     height: int
-    margin: float
+    margin: tuple[float, float]
 
     @staticmethod
     def create(
@@ -68,12 +70,13 @@ class MPIFrame:
         depths: np.ndarray | None = None,
     ) -> MPIFrame:
         """``depths`` [num_planes], nearest first, from ``near`` to ``far``: the planes (default
-        uniform in disparity, :func:`cmc.geometry.planes.plane_depths`)."""
+        uniform in disparity, :func:`cmc.geometry.planes.plane_depths`); ``margin``: the plane
+        extent about ``margin`` times the image's size (:func:`pixel_aligned_margin`)."""
         d = plane_depths(near, far, num_planes) if depths is None else np.asarray(depths)
         if len(d) != num_planes:
             raise ValueError(f"{len(d)} plane depths given for {num_planes} planes")
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device)  # noqa: E731
-        return MPIFrame(t(K), t(world_from_ref), t(d), width, height, margin)
+        return MPIFrame(t(K), t(world_from_ref), t(d), width, height, pixel_aligned_margin(width, height, margin))
 
     @property
     def ref_from_world(self) -> torch.Tensor:
@@ -88,17 +91,26 @@ class MPIFrame:
     @property
     def extent(self) -> tuple[int, int]:
         """(height, width) of the plane extent in reference pixels (image size times margin)."""
-        return round(self.height * self.margin), round(self.width * self.margin)
+        return round(self.height * self.margin[1]), round(self.width * self.margin[0])
 
     def grid_from_pixels(self, uv: torch.Tensor) -> torch.Tensor:
         """Reference pixel coordinates [..., 2] -> plane grid coordinates in [-1, 1] inside."""
         size = uv.new_tensor([self.width, self.height])
-        return (uv / size * 2 - 1) / self.margin
+        return (uv / size * 2 - 1) / uv.new_tensor(self.margin)
 
     def pixels_from_grid(self, g: torch.Tensor) -> torch.Tensor:
         """Inverse of :meth:`grid_from_pixels`."""
         size = g.new_tensor([self.width, self.height])
-        return (g * self.margin + 1) / 2 * size
+        return (g * g.new_tensor(self.margin) + 1) / 2 * size
+
+
+def pixel_aligned_margin(width: int, height: int, margin: float) -> tuple[float, float]:
+    """(x, y) margins closest to ``margin`` that add a whole number of pixels on each side of a
+    ``width`` x ``height`` image: the plane extent is then (width + 2 px) x (height + 2 py)
+    texels at full resolution, and texel c sits on pixel centre c - px + 0.5 exactly (sampling
+    the reference view between texels would low-pass its finest detail)."""
+    px, py = round(width * (margin - 1) / 2), round(height * (margin - 1) / 2)
+    return (width + 2 * px) / width, (height + 2 * py) / height
 
 
 @dataclass
@@ -272,9 +284,9 @@ class _TextureWarp:
         dt: torch.dtype,
     ) -> _TextureWarp:
         """The warp of ``frame``'s planes into the target camera's width x height pixels."""
-        mg = frame.margin
+        mx, my = frame.margin
         grid_from_ref_pixels = torch.tensor(
-            [[2 / (frame.width * mg), 0, -1 / mg], [0, 2 / (frame.height * mg), -1 / mg]], device=dev, dtype=dt
+            [[2 / (frame.width * mx), 0, -1 / mx], [0, 2 / (frame.height * my), -1 / my]], device=dev, dtype=dt
         )
         M = grid_from_ref_pixels @ frame.K  # [2, 3]
         ref_from_tgt = frame.ref_from_world @ world_from_tgt

@@ -1,10 +1,10 @@
 """Baked MPIs: explicit RGBA planes on disk, and a renderer that needs only those files.
 
-On-disk format ``cmc-mpi`` version 1 (a folder; every file is browser-loadable):
+On-disk format ``cmc-mpi`` version 2 (a folder; every file is browser-loadable):
 
 * ``mpi.json``::
 
-    {"format": "cmc-mpi", "version": 1,
+    {"format": "cmc-mpi", "version": 2,
      "convention": "opencv",          # camera axes x right, y down, z forward; see cmc.geometry.cameras
      "width": W, "height": H,         # size of the input images (pixels)
      "near": n, "far": f,             # plane range, scene units
@@ -15,7 +15,8 @@ On-disk format ``cmc-mpi`` version 1 (a folder; every file is browser-loadable):
      "mpis": [{"K": 3x3,              # reference intrinsics, pixels, corner-origin
                "world_from_cam": 4x4, # reference camera-to-world
                "depths": [D floats],  # plane depths (reference camera z), nearest first
-               "margin": m,           # planes cover the image enlarged m times about its centre
+               "margin": [mx, my],    # planes cover the image's width enlarged mx times and its
+                                      # height my times about its centre (version 1: one number)
                "tile": [h, w],        # texels per plane
                "grid": [rows, cols],  # tiles in the atlas, row-major, plane k at (k // cols, k % cols)
                "atlas": "mpi_00.png"}, ...]}
@@ -23,8 +24,9 @@ On-disk format ``cmc-mpi`` version 1 (a folder; every file is browser-loadable):
 * ``mpi_XX.png``: 8-bit RGBA atlas of the D planes, straight (not premultiplied) alpha, alpha
   of :data:`ALPHA_FLOOR` (2) or less stored as 0 (:func:`quantize_planes`). Texel
   (r, c) of a tile covers reference pixel coordinates
-  ``((c + 0.5) / w * 2 - 1) * m`` -> ``u = (x * m + 1) / 2 * W`` (same for v with h, H), i.e.
-  the tile spans the image's extent enlarged ``m`` times about the image centre.
+  ``x = ((c + 0.5) / w * 2 - 1) * mx`` -> ``u = (x + 1) / 2 * W`` (the same for v with r, h, my,
+  H), i.e. the tile spans the image's extent enlarged ``mx`` and ``my`` times about the image
+  centre. Version 1 (one margin m for both axes) is read as ``[m, m]``.
 
 Rendering composites each MPI front to back and blends them as
 :func:`cmc.mpi.rendering.render_image` does: on the CPU with the compiled kernel of
@@ -70,8 +72,15 @@ ALPHA_FLOOR = 2
 PREVIEW_TEXEL_SCALE = 0.5
 
 FORMAT = "cmc-mpi"
-VERSION = 1
+VERSION = 2
+READABLE_VERSIONS = (1, 2)
 MANIFEST = "mpi.json"
+
+
+def entry_margin(entry: dict) -> tuple[float, float]:
+    """(x, y) margin of a manifest's MPI entry: version 2 stores both, version 1 one for both."""
+    m = entry["margin"]
+    return (float(m), float(m)) if isinstance(m, int | float) else (float(m[0]), float(m[1]))
 
 
 @torch.no_grad()
@@ -140,7 +149,7 @@ def _bake_mpi(
         "K": frame.K.cpu().tolist(),
         "world_from_cam": frame.world_from_ref.cpu().tolist(),
         "depths": depths.cpu().tolist(),
-        "margin": frame.margin,
+        "margin": list(frame.margin),
         "tile": [h, w],
         "grid": [rows, cols],
         "atlas": name,
@@ -254,7 +263,7 @@ class BakedScene:
             raise BakedFormatError(f"no {MANIFEST} in {folder}: not a baked MPI folder") from None
         except json.JSONDecodeError as e:
             raise BakedFormatError(f"{folder / MANIFEST} is not valid JSON: {e}") from None
-        if m.get("format") != FORMAT or m.get("version") != VERSION:
+        if m.get("format") != FORMAT or m.get("version") not in READABLE_VERSIONS:
             raise BakedFormatError(
                 f"{folder} holds {m.get('format')} v{m.get('version')}, expected {FORMAT} v{VERSION}"
             )
@@ -274,7 +283,7 @@ class BakedScene:
             packed.fill(i, tex)
             t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device)  # noqa: E731
             frames.append(
-                MPIFrame(t(e["K"]), t(e["world_from_cam"]), t(e["depths"]), m["width"], m["height"], float(e["margin"]))
+                MPIFrame(t(e["K"]), t(e["world_from_cam"]), t(e["depths"]), m["width"], m["height"], entry_margin(e))
             )
         interpolation = m.get("colour_interpolation", "bilinear")  # absent from bakes before it existed
         if interpolation not in INTERPOLATIONS:

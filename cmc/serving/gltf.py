@@ -60,11 +60,13 @@ def scene_root(manifest: dict) -> np.ndarray:
     return np.linalg.inv(convert_pose(mean_pose(poses), "opencv", "opengl"))
 
 
-def plane_corners(K: np.ndarray, world_from_cam: np.ndarray, depth: float, width: int, height: int, margin: float):
+def plane_corners(
+    K: np.ndarray, world_from_cam: np.ndarray, depth: float, width: int, height: int, margin: tuple[float, float]
+):
     """[4, 3] world corners of a plane (top-left, top-right, bottom-right, bottom-left as the
-    reference camera sees it): the image's extent enlarged ``margin`` times, at camera z ``depth``."""
-    u0, u1 = (1 - margin) / 2 * width, (1 + margin) / 2 * width
-    v0, v1 = (1 - margin) / 2 * height, (1 + margin) / 2 * height
+    reference camera sees it): the image's extent enlarged ``margin`` (x, y) times, at camera z ``depth``."""
+    u0, u1 = (1 - margin[0]) / 2 * width, (1 + margin[0]) / 2 * width
+    v0, v1 = (1 - margin[1]) / 2 * height, (1 + margin[1]) / 2 * height
     corners = np.array([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], dtype=np.float64)
     cam = depth * pixel_rays(K, corners)
     return cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
@@ -178,6 +180,8 @@ def _read_atlas(folder: Path, entry: dict) -> np.ndarray:
 def _plane_meshes(out: _Bin, atlas: np.ndarray, e: dict, W: int, H: int) -> tuple[list, list, list, list, list]:
     """glTF accessors, images, textures, materials and primitives of the planes of MPI entry
     ``e``, far to near (back to front), their data appended to ``out``."""
+    from cmc.serving.baking import entry_margin
+
     K, pose = np.array(e["K"], dtype=np.float64), np.array(e["world_from_cam"], dtype=np.float64)
     (h, w), (_, cols), depths = e["tile"], e["grid"], e["depths"]
     uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float32)  # glTF UV: origin top-left
@@ -193,7 +197,7 @@ def _plane_meshes(out: _Bin, atlas: np.ndarray, e: dict, W: int, H: int) -> tupl
         tile = atlas[r * h : (r + 1) * h, c * w : (c + 1) * w].copy()
         if k == len(depths) - 1:
             tile[..., 3] = 255  # the back plane is opaque (cmc.mpi.fields)
-        corners = plane_corners(K, pose, float(depths[k]), W, H, float(e["margin"])).astype(np.float32)
+        corners = plane_corners(K, pose, float(depths[k]), W, H, entry_margin(e)).astype(np.float32)
         accessors.append(
             {
                 "bufferView": out.add(corners.tobytes(), ARRAY_BUFFER),

@@ -213,7 +213,7 @@ class MPIGeometry:
     depths: np.ndarray  # [D], nearest first
     width: int
     height: int
-    margin: float
+    margin: tuple[float, float]  # (x, y)
 
     @staticmethod
     def from_frame(frame) -> MPIGeometry:
@@ -224,7 +224,7 @@ class MPIGeometry:
             f64(frame.depths),
             frame.width,
             frame.height,
-            float(frame.margin),
+            tuple(float(m) for m in frame.margin),
         )
 
 
@@ -234,8 +234,8 @@ def _plane_params(g: MPIGeometry, h: int, w: int, K_tgt: np.ndarray, world_from_
     per plane k the framed texel coordinates ``(ax_k m_x + bx_k, ay_k m_y + by_k)`` of the crossing,
     ``m = M d / d_z``, and ``e_k`` (the crossing's target depth is ``e_k / d_z``); and the number
     of planes with ``e_k <= 0`` (behind the target centre: seen by rays with ``d_z < 0`` only)."""
-    mg = g.margin
-    M = np.array([[2 / (g.width * mg), 0, -1 / mg], [0, 2 / (g.height * mg), -1 / mg]]) @ g.K
+    mx, my = g.margin
+    M = np.array([[2 / (g.width * mx), 0, -1 / mx], [0, 2 / (g.height * my), -1 / my]]) @ g.K
     ref_from_tgt = g.ref_from_world @ world_from_tgt
     R, t = ref_from_tgt[:3, :3], ref_from_tgt[:3, 3]
     d_from_pixel = R @ np.linalg.inv(K_tgt)
