@@ -538,6 +538,6 @@ def warm_up() -> None:
     render of a fresh process does not pay the compile; the Dockerfiles call it."""
     K = np.array([[4.0, 0, 2], [0, 4.0, 2], [0, 0, 1]])
     packed = PackedTextures.pack([np.full((2, 4, 4, 4), 255, dtype=np.uint8)])
-    g = MPIGeometry(K, np.eye(4), np.array([1.0, 2.0]), 4, 4, 1.0)
+    g = MPIGeometry(K, np.eye(4), np.array([1.0, 2.0]), 4, 4, (1.0, 1.0))
     for mode in INTERPOLATIONS:
         render(packed, [g], np.ones(1), [0], K, np.eye(4), 4, 4, colour_interpolation=mode)
