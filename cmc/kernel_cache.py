@@ -1,7 +1,7 @@
 """What every compiled numba kernel (:mod:`cmc.mpi.plane_sampling`, :mod:`cmc.mpi.composite_kernel`,
-:mod:`cmc.serving.texture_kernel`, :mod:`cmc.method.sweep_kernel`) shares: a writable on-disk
-cache, found before the first kernel is defined, and the threading of parallel kernels
-(:data:`PARALLEL_LAUNCH`).
+:mod:`cmc.serving.texture_kernel`, :mod:`cmc.method.sweep_kernel`, :mod:`cmc.method.prior_kernel`)
+shares: a writable on-disk cache, found before the first kernel is defined, and the threading of
+parallel kernels (:data:`PARALLEL_LAUNCH`).
 
 numba looks for a writable cache folder the moment a ``cache=True`` kernel is defined (at import)
 and raises ``RuntimeError: cannot cache function ...`` when it finds none. It tries
@@ -12,8 +12,9 @@ them; :func:`prepare` then points numba at a folder of this user's in the tempor
 
 Kernels compiled in advance: ``CMC_KERNEL_CACHE_SEED`` names a cache folder made by
 :func:`cmc.serving.texture_kernel.warm_up`, :func:`cmc.mpi.plane_sampling.warm_up`,
-:func:`cmc.mpi.composite_kernel.warm_up` and :func:`cmc.method.sweep_kernel.warm_up` run with
-``NUMBA_CACHE_DIR`` pointing at it (the Docker images do this at build time). It may be read-only:
+:func:`cmc.mpi.composite_kernel.warm_up`, :func:`cmc.method.sweep_kernel.warm_up` and
+:func:`cmc.method.prior_kernel.warm_up` run with ``NUMBA_CACHE_DIR`` pointing at it (the Docker
+images do this at build time). It may be read-only:
 :func:`prepare` copies its files into the cache folder in use, where they are missing, so a fresh
 process loads the kernels instead of compiling them (about 7 s on 2 cores). numba keys each entry
 by the source file's path and content hash and by the CPU it was compiled for: a seed compiled on

@@ -20,12 +20,13 @@ def _rays(seed: int, R: int = 400, D: int = 9) -> tuple[torch.Tensor, torch.Tens
     return rgb, alpha, torch.rand(R, D, generator=gen) * 5
 
 
-@pytest.mark.parametrize("min_weight", [0.0, 0.05])
+@pytest.mark.parametrize(("min_weight", "scale"), [(0.0, 1.0), (0.05, 1.0), (0.05, 0.1)])
 @pytest.mark.parametrize("outputs", ["all", "colour only"])
-def test_the_compiled_composite_is_its_torch_twin(outputs, min_weight):
+def test_the_compiled_composite_is_its_torch_twin(outputs, min_weight, scale):
     """The same colour, depth, coverage and weights, and the same gradients of rgb and alpha
     (from all four outputs, or from the colour alone: autograd then passes no gradient for the
-    others), up to float rounding; with a least weight for colour gradients, the same ones cut."""
+    others), up to float rounding; with a least weight for colour gradients, the same ones cut;
+    with a factor on the colours' gradients, the same factor."""
     rgb0, alpha0, depth = _rays(0)
     gen = torch.Generator().manual_seed(1)
     grads = [torch.randn(400, 3, generator=gen), torch.randn(400, generator=gen)]
@@ -33,7 +34,7 @@ def test_the_compiled_composite_is_its_torch_twin(outputs, min_weight):
     results = []
     for fn in (composite_kernel.composite, composite_torch):
         rgb, alpha = rgb0.clone().requires_grad_(), alpha0.clone().requires_grad_()
-        out = fn(rgb, alpha, depth, min_weight)
+        out = fn(rgb, alpha, depth, min_weight, scale)
         out = (out.rgb, out.depth, out.acc, out.weights) if fn is composite_torch else out
         used = out if outputs == "all" else out[:1]
         sum((o * g).sum() for o, g in zip(used, grads, strict=False)).backward()

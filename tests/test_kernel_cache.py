@@ -27,6 +27,7 @@ KERNEL_MODULES = (
     "cmc.serving.texture_kernel",
     "cmc.method.sweep_kernel",
     "cmc.mpi.composite_kernel",
+    "cmc.method.prior_kernel",
 )
 NOBODY = 65534
 

@@ -18,6 +18,7 @@ from itertools import combinations
 
 import torch
 
+from cmc.method import prior_kernel
 from cmc.mpi.rendering import RayOutput
 
 
@@ -75,17 +76,21 @@ def distortion(outs: Sequence[RayOutput], num_planes: int) -> torch.Tensor:
     Per ray: ``sum_{k,l} w_k w_l |s_k - s_l| + 1/3 sum_k w_k^2 delta`` with plane spacing
     ``delta = 1 / (D - 1)``. It is small when the weight sits on one plane or a few adjacent ones,
     and grows when it is spread over distant planes (a ray meeting fog, or two surfaces
-    half-transparent). Mean over MPIs and covered rays; every output needs ``weights``.
+    half-transparent). Mean over MPIs and covered rays; every output needs ``weights``. On the
+    CPU each ray's sum comes from a compiled kernel (:func:`cmc.method.prior_kernel.distortion_per_ray`).
     """
     delta = 1.0 / (num_planes - 1)
     terms = []
     for o in outs:
         w = o.weights
-        s = torch.arange(w.shape[1], device=w.device, dtype=w.dtype) * delta
-        # sum_{k,l} w_k w_l |s_k - s_l| = 2 sum_k w_k (s_k W_<k - S_<k), exclusive prefix sums.
-        W = torch.cumsum(w, 1) - w
-        S = torch.cumsum(w * s, 1) - w * s
-        per_ray = 2 * (w * (s * W - S)).sum(1) + (w**2).sum(1) * delta / 3
+        if prior_kernel.supported(w):
+            per_ray = prior_kernel.distortion_per_ray(w, delta)
+        else:
+            s = torch.arange(w.shape[1], device=w.device, dtype=w.dtype) * delta
+            # sum_{k,l} w_k w_l |s_k - s_l| = 2 sum_k w_k (s_k W_<k - S_<k), exclusive prefix sums.
+            W = torch.cumsum(w, 1) - w
+            S = torch.cumsum(w * s, 1) - w * s
+            per_ray = 2 * (w * (s * W - S)).sum(1) + (w**2).sum(1) * delta / 3
         terms.append((_mask(o) * per_ray).mean())
     return torch.stack(terms).mean()
 
@@ -105,12 +110,19 @@ def alpha_entropy(outs: Sequence[RayOutput]) -> torch.Tensor:
     transmittance recovered from the compositing weights (``T_k = 1 - sum_{l<k} w_l``,
     ``a_k = w_k / T_k``). Faint alpha in front of a surface (fog: a ghost of a surface at another
     depth once the view moves) costs, clear space (a = 0) and an opaque surface (a = 1) do not,
-    nor anything behind an opaque surface. Mean over MPIs and covered rays.
+    nor anything behind an opaque surface. The back plane (k = D - 1) is not counted: it is
+    opaque by construction, and its alpha recovered in float32 lands a few 1e-6 from 1 either
+    way, where H' is large and the clamp decides by rounding whether it passes. Mean over MPIs
+    and covered rays; on the CPU each ray's sum comes from a compiled kernel
+    (:func:`cmc.method.prior_kernel.alpha_entropy_per_ray`).
     """
     terms = []
     for o in outs:
-        a, trans = alpha_and_transmittance(o.weights)
-        a = a.clamp(1e-6, 1 - 1e-6)
-        h = -(a * torch.log(a) + (1 - a) * torch.log1p(-a))
-        terms.append((_mask(o) * (trans * h).sum(1)).mean())
+        if prior_kernel.supported(o.weights):
+            per_ray = prior_kernel.alpha_entropy_per_ray(o.weights)
+        else:
+            a, trans = alpha_and_transmittance(o.weights)
+            a = a.clamp(1e-6, 1 - 1e-6)
+            per_ray = (trans * -(a * torch.log(a) + (1 - a) * torch.log1p(-a)))[:, :-1].sum(1)
+        terms.append((_mask(o) * per_ray).mean())
     return torch.stack(terms).mean()

@@ -46,18 +46,19 @@ def _forward(rgb, alpha, depth, out_rgb, out_depth, out_acc, weights):  # pragma
 
 @numba.njit(parallel=True, **_JIT)
 def _backward(
-    rgb, alpha, depth, weights, g_rgb, g_depth, g_acc, g_w, min_w, d_rgb, d_alpha
+    rgb, alpha, depth, weights, g_rgb, g_depth, g_acc, g_w, min_w, scale, d_rgb, d_alpha
 ):  # pragma: no cover - compiled
     R, D = alpha.shape
-    min_w = np.float32(min_w)
+    min_w, scale = np.float32(min_w), np.float32(scale)
     for r in numba.prange(R):
         a0, a1, a2, gz, ga = g_rgb[r, 0], g_rgb[r, 1], g_rgb[r, 2], g_depth[r], g_acc[r]
+        s0, s1, s2 = scale * a0, scale * a1, scale * a2  # the colours' share of the gradient
         u = np.float32(0)  # U_{k+1}
         for k in range(D - 1, -1, -1):
             w = weights[r, k]
             g = g_w[r, k] + a0 * rgb[r, k, 0] + a1 * rgb[r, k, 1] + a2 * rgb[r, k, 2] + gz * depth[r, k] + ga
             if w >= min_w:
-                d_rgb[r, k, 0], d_rgb[r, k, 1], d_rgb[r, k, 2] = w * a0, w * a1, w * a2
+                d_rgb[r, k, 0], d_rgb[r, k, 1], d_rgb[r, k, 2] = w * s0, w * s1, w * s2
             else:
                 d_rgb[r, k, 0] = d_rgb[r, k, 1] = d_rgb[r, k, 2] = np.float32(0)
             d_alpha[r, k] = g - u
@@ -75,7 +76,7 @@ def _array(t: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, min_w: float):  # type: ignore[override]
+    def forward(ctx, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, min_w: float, scale: float):  # type: ignore[override]
         R, D = alpha.shape
         out_rgb, out_depth, out_acc, weights = torch.empty(R, 3), torch.empty(R), torch.empty(R), torch.empty(R, D)
         with kernel_cache.PARALLEL_LAUNCH:
@@ -89,7 +90,7 @@ class _Composite(torch.autograd.Function):
                 weights.numpy(),
             )
         ctx.save_for_backward(rgb, alpha, depth, weights)
-        ctx.min_w = min_w
+        ctx.min_w, ctx.scale = min_w, scale
         ctx.set_materialize_grads(False)
         return out_rgb, out_depth, out_acc, weights
 
@@ -109,10 +110,11 @@ class _Composite(torch.autograd.Function):
                 _array(g_acc, (R,)),
                 _array(g_w, (R, D)),
                 ctx.min_w,
+                ctx.scale,
                 d_rgb.numpy(),
                 d_alpha.numpy(),
             )
-        return d_rgb, d_alpha, None, None
+        return d_rgb, d_alpha, None, None, None
 
 
 def supported(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> bool:
@@ -124,15 +126,20 @@ def supported(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> bo
 
 
 def composite(
-    rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, colour_grad_min_weight: float = 0.0
+    rgb: torch.Tensor,
+    alpha: torch.Tensor,
+    depth: torch.Tensor,
+    colour_grad_min_weight: float = 0.0,
+    colour_grad_scale: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Front-to-back compositing of rgb [R, D, 3], alpha [R, D] and per-sample depth [R, D],
     nearest plane first -> colour [R, 3], depth [R], accumulated alpha [R] and the planes'
-    weights [R, D]; differentiable in rgb and alpha, the gradient of a sample's colour exactly 0
-    where its weight is below ``colour_grad_min_weight``. Only where :func:`supported`."""
+    weights [R, D]; differentiable in rgb and alpha, the gradient of a sample's colour times
+    ``colour_grad_scale``, and exactly 0 where its weight is below ``colour_grad_min_weight``.
+    Only where :func:`supported`."""
     if not supported(rgb, alpha, depth):
         raise ValueError("the compiled composite takes float32 CPU tensors, RGB, and depths without gradient")
-    return _Composite.apply(rgb, alpha, depth, colour_grad_min_weight)
+    return _Composite.apply(rgb, alpha, depth, colour_grad_min_weight, colour_grad_scale)
 
 
 def warm_up() -> None:

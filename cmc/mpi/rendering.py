@@ -23,9 +23,7 @@ import torch.nn.functional as F
 from cmc.geometry.cameras import pixel_rays
 from cmc.geometry.planes import (
     ArrayT,
-    apply_homography,
     blend_weights,
-    homographies_ref_from_tgt,
     mean_baseline,
     pixel_centers,
     plane_depths,
@@ -103,6 +101,13 @@ class MPIFrame:
         size = g.new_tensor([self.width, self.height])
         return (g * g.new_tensor(self.margin) + 1) / 2 * size
 
+    def grid_from_camera(self, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """[2, 3] M: a point X in reference camera coordinates (or a ray) -> ``M X / X_z``, the
+        plane grid coordinates of its projection (:meth:`grid_from_pixels` of ``K X / X_z``)."""
+        mx, my = self.margin
+        G = [[2 / (self.width * mx), 0, -1 / mx], [0, 2 / (self.height * my), -1 / my]]
+        return torch.tensor(G, dtype=dtype, device=self.K.device) @ self.K.to(dtype)
+
 
 def pixel_aligned_margin(width: int, height: int, margin: float) -> tuple[float, float]:
     """(x, y) margins closest to ``margin`` that add a whole number of pixels on each side of a
@@ -136,28 +141,40 @@ class RayOutput:
 
 
 def composite(
-    rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, colour_grad_min_weight: float = 0.0
+    rgb: torch.Tensor,
+    alpha: torch.Tensor,
+    depth: torch.Tensor,
+    colour_grad_min_weight: float = 0.0,
+    colour_grad_scale: float = 1.0,
 ) -> RayOutput:
     """Front-to-back alpha compositing (paper Eq. 3.4, 3.5).
 
     Shape: rgb [R, D, 3] (any number of channels), alpha [R, D], depth [R, D] (per-sample depth),
-    nearest plane first. A sample whose weight is below ``colour_grad_min_weight`` passes no
-    gradient to its colour (its share of the ray's colour is too small to fit, and the compiled
-    sampler skips the colour texels of such samples in the backward pass). On the CPU a compiled
-    kernel (:mod:`cmc.mpi.composite_kernel`) computes it; elsewhere (and for depths with a
-    gradient, or other than 3 channels) :func:`composite_torch`, its twin.
+    nearest plane first. The gradients that reach the colours are multiplied by
+    ``colour_grad_scale`` (the rendered values do not depend on it); a sample whose weight is
+    below ``colour_grad_min_weight`` passes none to its colour (its share of the ray's colour is
+    too small to fit, and the compiled sampler skips the colour texels of such samples in the
+    backward pass). On the CPU a compiled kernel (:mod:`cmc.mpi.composite_kernel`) computes it;
+    elsewhere (and for depths with a gradient, or other than 3 channels) :func:`composite_torch`,
+    its twin.
     """
     if composite_kernel.supported(rgb, alpha, depth):
-        return RayOutput(*composite_kernel.composite(rgb, alpha, depth, colour_grad_min_weight))
-    return composite_torch(rgb, alpha, depth, colour_grad_min_weight)
+        return RayOutput(*composite_kernel.composite(rgb, alpha, depth, colour_grad_min_weight, colour_grad_scale))
+    return composite_torch(rgb, alpha, depth, colour_grad_min_weight, colour_grad_scale)
 
 
 def composite_torch(
-    rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, colour_grad_min_weight: float = 0.0
+    rgb: torch.Tensor,
+    alpha: torch.Tensor,
+    depth: torch.Tensor,
+    colour_grad_min_weight: float = 0.0,
+    colour_grad_scale: float = 1.0,
 ) -> RayOutput:
     """:func:`composite` as torch ops (any device)."""
     trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], dim=1), dim=1)
     w = alpha * trans
+    if colour_grad_scale != 1.0 and rgb.requires_grad:
+        rgb = rgb.detach() + colour_grad_scale * (rgb - rgb.detach())
     if colour_grad_min_weight > 0 and rgb.requires_grad:
         rgb = torch.where((w.detach() >= colour_grad_min_weight)[..., None], rgb, rgb.detach())
     return RayOutput((w[..., None] * rgb).sum(1), (w * depth).sum(1), w.sum(1), w)
@@ -196,20 +213,28 @@ def render_ray_groups(
         one RayOutput per group.
     """
     gs, lams, insides, dirss = [], [], [], []
+    z = frame.depths
+    M = frame.grid_from_camera(z.dtype)  # [2, 3]
     for K_tgt, world_from_tgt, uv in groups:
-        H = homographies_ref_from_tgt(frame.K, frame.ref_from_world, K_tgt, world_from_tgt, frame.depths)
-        uv_ref, in_front = apply_homography(H, uv)  # [R, D, 2], [R, D]
-        g = frame.grid_from_pixels(uv_ref)
-        insides.append(in_front & (g.abs() <= 1).all(-1))
-        gs.append(g.clamp(-1.5, 1.5))
-        # Ray directions in the reference frame, and the target depth of every plane crossing:
-        # the point o + lam * d_ref (d_ref has target z = 1) lies on plane z_ref = depth.
+        # The ray t + lam * d_ref (reference frame, d_ref with target z = 1) meets plane k at the
+        # target depth lam_k = e_k / d_z (e_k = z_k - t_z), at plane grid coordinates
+        # g_k = (e_k / z_k) m + M t / z_k with m = M d_ref / d_z: one multiply-add per plane
+        # (the plane-induced homography of paper Eq. 4.1-4.2, in affine form).
         ref_from_tgt = frame.ref_from_world @ world_from_tgt
-        d_tgt = pixel_rays(K_tgt, uv)
-        d_ref = d_tgt @ ref_from_tgt[:3, :3].T
-        lams.append((frame.depths[None] - ref_from_tgt[2, 3]) / d_ref[:, 2:3])  # [R, D]
+        t = ref_from_tgt[:3, 3]
+        d_ref = pixel_rays(K_tgt, uv) @ ref_from_tgt[:3, :3].T  # [R, 3]
+        d_z = d_ref[:, 2:3]
+        d_z = torch.where(d_z == 0, torch.full_like(d_z, 1e-12), d_z)  # a ray parallel to the planes
+        e = z - t[2]  # [D]
+        lam = e[None] / d_z  # [R, D]
+        m = (d_ref @ M.T) / d_z  # [R, 2]
+        g = torch.addcmul((M @ t / z[:, None])[:, None, :], (e / z)[:, None, None], m[None])  # [D, R, 2]
+        insides.append((lam > 0) & (g.abs() <= 1).all(-1).T)
+        gs.append(g.clamp(-1.5, 1.5))
+        lams.append(lam)
         dirss.append(d_ref / d_ref.norm(dim=-1, keepdim=True))
-    rgb, alpha = field(torch.cat(gs), frame.plane_z, torch.cat(dirss))
+    # [R, D, 2] as a view of the [D, R, 2] grid the explicit fields sample plane by plane.
+    rgb, alpha = field(torch.cat(gs, 1).transpose(0, 1), frame.plane_z, torch.cat(dirss))
     # split, not slices: the backward of a slice fills a zero gradient of the whole batch per group
     sizes = [len(lam) for lam in lams]
     outs = []
@@ -219,10 +244,8 @@ def render_ray_groups(
         scale = 1.0 if color_grad is None else float(color_grad[g])
         if scale == 0.0:  # no colour gradients: no backward pass through the colours at all
             rgb_g = rgb_g.detach()
-        elif scale != 1.0:
-            rgb_g = rgb_g.detach() + scale * (rgb_g - rgb_g.detach())
         depth_g = torch.where(inside, lam, torch.zeros_like(lam))
-        outs.append(composite(rgb_g, alpha_g * inside, depth_g, colour_grad_min_weight))
+        outs.append(composite(rgb_g, alpha_g * inside, depth_g, colour_grad_min_weight, scale))
     return outs
 
 
@@ -284,11 +307,7 @@ class _TextureWarp:
         dt: torch.dtype,
     ) -> _TextureWarp:
         """The warp of ``frame``'s planes into the target camera's width x height pixels."""
-        mx, my = frame.margin
-        grid_from_ref_pixels = torch.tensor(
-            [[2 / (frame.width * mx), 0, -1 / mx], [0, 2 / (frame.height * my), -1 / my]], device=dev, dtype=dt
-        )
-        M = grid_from_ref_pixels @ frame.K  # [2, 3]
+        M = frame.grid_from_camera(dt).to(dev)  # [2, 3]
         ref_from_tgt = frame.ref_from_world @ world_from_tgt
         R, t = ref_from_tgt[:3, :3], ref_from_tgt[:3, 3]
         d_from_pixel = R @ torch.linalg.inv(K_tgt)  # [3, 3]: homogeneous target pixel -> d(p)
