@@ -54,6 +54,25 @@ def rotation(axis, angle: float) -> np.ndarray:
     return np.eye(3) + math.sin(angle) * Kx + (1 - math.cos(angle)) * Kx @ Kx
 
 
+def apply_homography(H, uv, eps: float = 1e-6):
+    """Map pixel coordinates through homographies (torch tensors; the renderers use the affine
+    form of the plane-induced homography, cmc.mpi.rendering.render_ray_groups).
+
+    Shape:
+        H: [..., D, 3, 3]; uv: [..., R, 2] continuous pixel coordinates.
+        Returns uv' [..., R, D, 2] and valid [..., R, D] (the point lies in front, w > eps).
+    """
+    import torch
+
+    ones = torch.ones_like(uv[..., :1])
+    p = torch.cat([uv, ones], dim=-1)  # [..., R, 3]
+    q = torch.einsum("...dij,...rj->...rdi", H, p)
+    w = q[..., 2]
+    valid = w > eps
+    w = torch.where(valid, w, torch.full_like(w, eps))
+    return q[..., :2] / w[..., None], valid
+
+
 def rigid(R: np.ndarray, t) -> np.ndarray:
     """[4, 4] rigid transform with rotation R and translation t."""
     T = np.eye(4)

@@ -8,11 +8,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from helpers import rigid, rotation
+from helpers import apply_homography, rigid, rotation
 
 from cmc.geometry.cameras import intrinsics
 from cmc.geometry.planes import (
-    apply_homography,
     blend_weights,
     content_plane_depths,
     homographies_ref_from_tgt,

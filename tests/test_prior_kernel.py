@@ -1,6 +1,6 @@
 """The compiled per-ray priors (cmc.method.prior_kernel) against their torch forms in
-cmc.method.losses: values and gradients, on weights with opaque planes mid-ray, rays that meet
-nothing and transmittance that reaches 0."""
+cmc.method.losses: values and gradients, on weights with nearly opaque planes mid-ray and rays
+that meet nothing; the entropy leaves the back plane out."""
 
 from __future__ import annotations
 
@@ -35,16 +35,7 @@ def test_the_kernels_match_the_torch_priors_in_value_and_gradient(prior):
     covered = (torch.rand(R, generator=torch.Generator().manual_seed(4)) > 0.2).float()  # the loss's ray mask
 
     def value(weights: torch.Tensor) -> torch.Tensor:
-        return loss(
-            [
-                RayOutput(
-                    weights.new_zeros(R, 3),
-                    weights.new_zeros(R),
-                    covered.to(weights),
-                    weights,
-                )
-            ]
-        )
+        return loss([RayOutput(weights.new_zeros(R, 3), weights.new_zeros(R), covered.to(weights), weights)])
 
     assert prior_kernel.supported(w) and not prior_kernel.supported(w.double())
     fast_w, slow_w = w.clone().requires_grad_(), w.double().requires_grad_()
@@ -55,3 +46,17 @@ def test_the_kernels_match_the_torch_priors_in_value_and_gradient(prior):
     (slow_g,) = torch.autograd.grad(slow, slow_w)
     assert float((slow_g[covered == 0]).abs().max()) == 0 and float(slow_g.abs().max()) > 0
     torch.testing.assert_close(fast_g.double(), slow_g, rtol=1e-4, atol=1e-6 * float(slow_g.abs().max()))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_entropy_leaves_the_opaque_back_plane_out(dtype):
+    """The back plane is opaque by construction (its alpha 1, whatever weight reaches it): its
+    weight changes neither the entropy nor any gradient, in the kernel (float32) and in torch."""
+    w = weights_of_rays(5).to(dtype)
+    out = lambda x: [RayOutput(x.new_zeros(R, 3), x.new_zeros(R), x.new_ones(R), x)]  # noqa: E731
+    x = w.clone().requires_grad_()
+    (g,) = torch.autograd.grad(alpha_entropy(out(x)), x)
+    moved = w.clone()
+    moved[:, -1] *= 0.5
+    torch.testing.assert_close(alpha_entropy(out(moved)), alpha_entropy(out(w)), rtol=0, atol=0)
+    assert not g[:, -1].any() and g[:, :-1].any()

@@ -117,22 +117,6 @@ def homographies_ref_from_tgt(
     return K_ref[..., None, :, :] @ H_cam @ torch.linalg.inv(K_tgt)[..., None, :, :]
 
 
-def apply_homography(H: torch.Tensor, uv: torch.Tensor, eps: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor]:
-    """Map pixel coordinates through homographies.
-
-    Shape:
-        H: [..., D, 3, 3]; uv: [..., R, 2] continuous pixel coordinates.
-        Returns uv' [..., R, D, 2] and valid [..., R, D] (the point lies in front, w > eps).
-    """
-    ones = torch.ones_like(uv[..., :1])
-    p = torch.cat([uv, ones], dim=-1)  # [..., R, 3]
-    q = torch.einsum("...dij,...rj->...rdi", H, p)
-    w = q[..., 2]
-    valid = w > eps
-    w = torch.where(valid, w, torch.full_like(w, eps))
-    return q[..., :2] / w[..., None], valid
-
-
 def texel_grid(height: int, width: int, device: torch.device | str = "cpu") -> torch.Tensor:
     """[height, width, 2] plane grid coordinates (x, y) in [-1, 1] of the centres of a texel grid
     (``grid_sample(align_corners=False)``'s convention: texel c of w sits at (c + 0.5) / w * 2 - 1)."""
