@@ -121,8 +121,8 @@ def alpha_entropy(outs: Sequence[RayOutput]) -> torch.Tensor:
         if prior_kernel.supported(o.weights):
             per_ray = prior_kernel.alpha_entropy_per_ray(o.weights)
         else:
-            a, trans = alpha_and_transmittance(o.weights)
+            a, trans = (x[:, :-1] for x in alpha_and_transmittance(o.weights))  # the back plane left out
             a = a.clamp(1e-6, 1 - 1e-6)
-            per_ray = (trans * -(a * torch.log(a) + (1 - a) * torch.log1p(-a)))[:, :-1].sum(1)
+            per_ray = (trans * -(a * torch.log(a) + (1 - a) * torch.log1p(-a))).sum(1)
         terms.append((_mask(o) * per_ray).mean())
     return torch.stack(terms).mean()

@@ -164,7 +164,7 @@ class _AlphaEntropy(torch.autograd.Function):
 
 
 def supported(weights: torch.Tensor) -> bool:
-    """Whether the kernels take these weights: a contiguous float32 CPU tensor [R, D]."""
+    """Whether the kernels take these weights: a float32 CPU tensor [R, D]."""
     return weights.device.type == "cpu" and weights.dtype == torch.float32 and weights.dim() == 2
 
 
