@@ -46,7 +46,17 @@ torch.manual_seed(0)
 cfg = with_settings(preset_config("fast"), ["model.pyramid.init_from_sweep=false"])
 trainer = Trainer(load_llff(data).train, cfg)
 if state:
-    trainer.model.load_state_dict(torch.load(state))
+    state, expected = torch.load(state), trainer.model.state_dict()
+    # The pyramid levels as this tree keeps them: RGBA in one ("levels", until 2026-11-29)
+    # or colour and alpha apart ("colour_levels", "alpha_levels").
+    for key in [k for k in state if ".levels." in k and k not in expected]:
+        rgba = state.pop(key)
+        state[key.replace(".levels.", ".colour_levels.")] = rgba[:, :3]
+        state[key.replace(".levels.", ".alpha_levels.")] = rgba[:, 3:]
+    for key in [k for k in state if ".colour_levels." in k and k not in expected]:
+        alpha = state.pop(key.replace(".colour_levels.", ".alpha_levels."))
+        state[key.replace(".colour_levels.", ".levels.")] = torch.cat([state.pop(key), alpha], 1)
+    trainer.model.load_state_dict(state)
 out = {}
 for phase, start in (("reconstruction_only", 0), ("full", 150)):
     trainer.step = start

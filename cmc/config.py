@@ -106,7 +106,8 @@ class TrainConfig:
     lr: float = 0.04  # Adam learning rate at step 0 ...
     lr_final: float = 0.005  # ... decaying exponentially to this at the last step
     # A plane sample weighing less than this in its ray's colour passes no gradient to its colour
-    # (cmc.mpi.rendering.composite): the backward pass skips those texels, most of a step's.
+    # (cmc.mpi.rendering.composite), and training does not sample its colour at all (it reads
+    # 0.5: cmc.mpi.rendering.render_ray_groups): both passes skip those texels, most of a step's.
     colour_grad_min_weight: float = 1e-3
     seed: int = 0
     checkpoint_every: int = 250  # steps between checkpoints (when a checkpoint path is given)

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from cmc.mpi import composite_kernel
-from cmc.mpi.rendering import composite, composite_torch
+from cmc.mpi.rendering import composite, composite_torch, strong_samples
 
 
 def _rays(seed: int, R: int = 400, D: int = 9) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -97,3 +97,17 @@ def test_the_compiled_composite_does_not_depend_on_the_thread_count():
     finally:
         numba.set_num_threads(threads)
     assert torch.equal(outs[0][0], outs[1][0]) and torch.equal(outs[0][1], outs[1][1])
+
+
+def test_strong_samples_are_those_the_composite_passes_colour_gradients():
+    """strong_samples marks exactly the samples whose weight the compiled composite computes at
+    the least weight or more (the same float32 operations), and its torch twin the same samples
+    up to ties within rounding."""
+    _, alpha, _ = _rays(5)
+    weights = composite_kernel.composite(*_rays(5))[3]
+    for min_weight in (1e-3, 0.05, 0.3):
+        strong = composite_kernel.strong_samples(alpha, min_weight)
+        assert torch.equal(strong, weights >= min_weight)
+        assert 0 < strong.float().mean() < 1
+        twin = strong_samples(alpha.double(), min_weight)
+        assert (twin != strong).sum() <= int(((weights - min_weight).abs() < 1e-6).sum())

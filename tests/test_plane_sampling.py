@@ -94,9 +94,12 @@ def test_bicubic_keeps_detail_that_bilinear_blurs_between_texels():
 
 @pytest.mark.parametrize("interpolation", ["bilinear", "bicubic"])
 @pytest.mark.parametrize(("num_planes", "groups"), [(12, 4), (10, 4)])
-def test_pyramid_field_is_the_same_with_either_sampler(monkeypatch, num_planes, groups, interpolation):
+@pytest.mark.parametrize("masked", [False, True])
+def test_pyramid_field_is_the_same_with_either_sampler(monkeypatch, num_planes, groups, interpolation, masked):
     """The field on the CPU (compiled sampler) and on torch's grid_sample (the GPU's path): same
-    colours and alpha, same gradients; 10 planes in 4 groups makes groups of unequal size."""
+    colours and alpha, same gradients; 10 planes in 4 groups makes groups of unequal size. With
+    ``colour_where`` (here: alpha above 0.3) both give 0.5 and no colour gradient at the other
+    samples, and the same as without it at the marked ones."""
     gen = torch.Generator().manual_seed(2)
     cfg = PyramidFieldConfig(base_groups=groups, base_interpolation=interpolation)
     field = PyramidPlaneField(num_planes, 30, 40, cfg, torch.rand(3, 30, 40, generator=gen))
@@ -104,12 +107,13 @@ def test_pyramid_field_is_the_same_with_either_sampler(monkeypatch, num_planes, 
         for p in field.parameters():
             p.add_(0.3 * torch.randn(p.shape, generator=gen))
     g = torch.rand(200, num_planes, 2, generator=gen) * 3 - 1.5
+    where = (lambda alpha: alpha.detach() > 0.3) if masked else None
     results = []
     for compiled in (True, False):
         if not compiled:
             monkeypatch.setattr(plane_sampling, "supported", lambda *a: False)
         field.zero_grad()
-        rgb, alpha = field(g, None, None)
+        rgb, alpha = field(g, None, None, where)
         (rgb.square().sum() + alpha.sum()).backward()
         results.append((rgb.detach(), alpha.detach(), [p.grad.clone() for p in field.parameters()]))
     (rgb1, a1, g1), (rgb2, a2, g2) = results
@@ -118,3 +122,9 @@ def test_pyramid_field_is_the_same_with_either_sampler(monkeypatch, num_planes, 
     for x, y in zip(g1, g2, strict=True):
         torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-5)
     assert all(np.isfinite(x.numpy()).all() and x.abs().sum() > 0 for x in g1)
+    if masked:
+        marked = a1 > 0.3
+        assert 0.1 < float(marked.float().mean()) < 0.9
+        assert bool((rgb1[~marked] == 0.5).all())
+        full, _ = field(g, None, None)
+        torch.testing.assert_close(rgb1[marked], full.detach()[marked], rtol=0, atol=1e-6)

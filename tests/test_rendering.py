@@ -423,6 +423,26 @@ def test_render_image_coverage_zero_outside_planes() -> None:
     assert float(out.acc.abs().max()) == 0 and float(out.rgb.abs().max()) == 0
 
 
+def test_faint_samples_read_grey_and_move_their_ray_by_at_most_half_their_weight() -> None:
+    """render_ray_groups with colour_grad_min_weight: the pyramid field samples no colour for
+    the samples weighing less (they read 0.5), so each ray's colour moves by at most half their
+    summed weight; its depth, coverage and weights stay as they were."""
+    field, frame = random_pyramid(8, torch.float32), make_frame()
+    K, pose = target_cameras()["moved"]
+    K_t, pose_t = torch.as_tensor(K, dtype=torch.float32), torch.as_tensor(pose, dtype=torch.float32)
+    args = (K_t, pose_t, target_uv(torch.float32))
+    with torch.no_grad():
+        (full,) = render_ray_groups(field, frame, [args])
+        (cut,) = render_ray_groups(field, frame, [args], colour_grad_min_weight=0.2)
+    faint = full.weights < 0.2
+    assert 0.1 < float(faint[full.acc > 0].float().mean()) < 0.9
+    for a, b in ((full.depth, cut.depth), (full.acc, cut.acc), (full.weights, cut.weights)):
+        assert torch.equal(a, b)
+    moved = (cut.rgb - full.rgb).abs().amax(-1)
+    bound = 0.5 * (full.weights * faint).sum(-1)
+    assert bool((moved <= bound + 1e-6).all()) and float(moved.max()) > 1e-3
+
+
 def test_color_grad_scales_the_gradients_to_colour_only() -> None:
     """render_ray_groups(color_grad=[f]): the composite does not depend on f; the gradients of the
     field's colours are f times those at f = 1 (False: none),
@@ -436,8 +456,8 @@ def test_color_grad_scales_the_gradients_to_colour_only() -> None:
         field.zero_grad()
         (out,) = render_ray_groups(field, frame, [args], color_grad=[flag])
         out.rgb.sum().backward()
-        base = torch.zeros_like(field.base) if field.base.grad is None else field.base.grad.clone()
-        grads[flag] = (out.rgb.detach(), field.levels[0].grad[:, :3].clone(), base, field.levels[0].grad[:, 3].clone())
+        grad = lambda p: torch.zeros_like(p) if p.grad is None else p.grad.clone()  # noqa: E731
+        grads[flag] = (out.rgb.detach(), grad(field.colour_levels[0]), grad(field.base), grad(field.alpha_levels[0]))
     rgb1, colour1, base1, alpha1 = grads[True]
     assert float(colour1.abs().sum()) > 0 and float(base1.abs().sum()) > 0 and float(alpha1.abs().sum()) > 0
     for flag, f in ((0.25, 0.25), (False, 0.0)):

@@ -135,8 +135,8 @@ class MeanResponseField(MPIField):
         self.field, self.exposure, self.view = field, exposure, view
         self.num_planes, self.colour_interpolation = field.num_planes, field.colour_interpolation
 
-    def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
-        rgb, alpha = self.field(g, plane_z, dirs)
+    def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor, colour_where=None):
+        rgb, alpha = self.field(g, plane_z, dirs, colour_where)
         return self.exposure.convert(rgb, self.view, None).clamp(0, 1), alpha
 
     @torch.no_grad()

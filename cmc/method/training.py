@@ -41,7 +41,8 @@ from cmc.method.model import CMCModel
 from cmc.mpi.rendering import render_ray_groups
 
 # 2: texture shapes follow the pixel-aligned plane extent (cmc.mpi.rendering.pixel_aligned_margin)
-CHECKPOINT_VERSION = 2
+# 3: the pyramid field's colour and alpha levels are separate parameters (cmc.mpi.fields)
+CHECKPOINT_VERSION = 3
 
 
 class TrainingCancelled(Exception):

@@ -69,6 +69,27 @@ def _backward(
             trans *= np.float32(1) - alpha[r, k]
 
 
+@numba.njit(parallel=True, **_JIT)
+def _strong(alpha, min_w, out):  # pragma: no cover - compiled
+    R, D = alpha.shape
+    min_w = np.float32(min_w)
+    for r in numba.prange(R):
+        trans = np.float32(1)
+        for k in range(D):
+            out[r, k] = alpha[r, k] * trans >= min_w  # the weight exactly as _forward computes it
+            trans *= np.float32(1) - alpha[r, k]
+
+
+def strong_samples(alpha: torch.Tensor, min_w: float) -> torch.Tensor:
+    """[R, D] bool: the samples whose weight :func:`composite` computes at ``min_w`` or more (the
+    same float32 operations, so the same samples its backward pass gives colour gradients).
+    Shape: alpha [R, D], float32 on the CPU."""
+    out = torch.empty(alpha.shape, dtype=torch.bool)
+    with kernel_cache.PARALLEL_LAUNCH:
+        _strong(alpha.detach().contiguous().numpy(), min_w, out.numpy())
+    return out
+
+
 def _array(t: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
     """The gradient ``t`` as an array, zeros where autograd passed none."""
     return np.zeros(shape, np.float32) if t is None else t.detach().numpy()
@@ -150,3 +171,4 @@ def warm_up() -> None:
     for rgb in (torch.rand(2, 3, 3), torch.rand(3, 2, 3).permute(1, 2, 0)):
         out = composite(rgb.requires_grad_(), alpha, torch.rand(2, 3), 0.5)
         sum(o.sum() + (o * torch.rand_like(o)).sum() for o in out).backward()
+    strong_samples(alpha, 0.5)

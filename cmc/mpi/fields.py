@@ -24,6 +24,7 @@ composited.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -36,12 +37,16 @@ from cmc.mpi import plane_sampling
 
 
 class MPIField(nn.Module):
-    """Base class. ``forward(g, plane_z, dirs) -> (rgb, alpha)``.
+    """Base class. ``forward(g, plane_z, dirs, colour_where=None) -> (rgb, alpha)``.
 
     Shape:
         g: [R, D, 2] plane grid coordinates; plane_z: [D] plane coordinate in [-1, 1]
         (normalised disparity, -1 = nearest); dirs: [R, 3] unit ray directions in the
         reference camera's frame. Returns rgb [R, D, 3] in [0, 1] and alpha [R, D] in [0, 1].
+
+    ``colour_where``, if given, maps the alpha [R, D] to the samples whose colour the caller
+    uses ([R, D] bool); elsewhere a field may return 0.5 without computing the colour (the
+    pyramid field does; the others compute every colour).
     """
 
     num_planes: int
@@ -103,7 +108,7 @@ class MLPField(MPIField):
         layers.append(nn.Linear(cfg.width, 4))
         self.mlp = nn.Sequential(*layers)
 
-    def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
+    def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor, colour_where=None):
         R, D, _ = g.shape
         x = torch.cat([g, plane_z[None, :, None].expand(R, D, 1)], dim=-1)
         feats = torch.cat([positional_encoding(x, self.cfg.pe_freqs), dirs[:, None].expand(R, D, 3)], dim=-1)
@@ -116,7 +121,7 @@ class PyramidFieldConfig:
     """Explicit multi-resolution plane textures and how the plane sweep starts them (defaults:
     the ``fast`` preset's)."""
 
-    scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane RGBA residual levels
+    scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane colour residual and alpha levels
     base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
     base_groups: int = 8  # base colours: one per group of adjacent planes (CMCModel: at most one per plane)
     # How rays sample the base colours: "bilinear", or "bicubic" (a sharper reconstruction: a
@@ -139,10 +144,12 @@ def plane_group_bounds(num_planes: int, groups: int) -> list[int]:
 class PyramidPlaneField(MPIField):
     """Explicit per-plane textures; see the module docstring.
 
-    Colour logits of plane k = base[k * G // D](g) + sum_l level_l[k](g)[:3]; alpha logit =
-    sum_l level_l[k](g)[3], where base is [G, 3, h, w] (G = ``cfg.base_groups``, one base per
-    group of about D / G adjacent planes) and level l is [D, 4, h * s_l, w * s_l], all sampled
-    bilinearly.
+    Colour logits of plane k = base[k * G // D](g) + sum_l colour_l[k](g); alpha logit =
+    sum_l alpha_l[k](g), where base is [G, 3, h, w] (G = ``cfg.base_groups``, one base per
+    group of about D / G adjacent planes, sampled as ``cfg.base_interpolation``), colour level l
+    is [D, 3, h * s_l, w * s_l] and alpha level l [D, 1, h * s_l, w * s_l], sampled bilinearly.
+    Alpha and colour are apart so that a query reads alpha first and colour only where the
+    caller needs it (``forward``'s ``colour_where``).
 
     Args:
         num_planes: D.
@@ -180,46 +187,62 @@ class PyramidPlaneField(MPIField):
         # Initial alpha 1 / (D - k), held by the coarsest level: every plane contributes equally.
         k = torch.arange(num_planes, dtype=torch.float32, device=rgb.device)
         alpha0 = torch.logit((1.0 / (num_planes - k)).clamp(max=0.99))
-        self.levels = nn.ParameterList()
+        self.colour_levels = nn.ParameterList()
+        self.alpha_levels = nn.ParameterList()
         for n, s in enumerate(cfg.scales):
-            lvl = torch.zeros(num_planes, 4, *size(s), device=rgb.device)
+            alpha = torch.zeros(num_planes, 1, *size(s), device=rgb.device)
             if init_alpha is not None and n == 0:
                 a = F.interpolate(init_alpha[:, None].float(), size=size(s), mode="bilinear", align_corners=False)
-                lvl[:, 3] = torch.logit(a[:, 0].clamp(0.01, 0.99))
+                alpha[:, 0] = torch.logit(a[:, 0].clamp(0.01, 0.99))
             elif init_alpha is None and n == len(cfg.scales) - 1:
-                lvl[:, 3] = alpha0[:, None, None]
-            self.levels.append(nn.Parameter(lvl))
+                alpha[:, 0] = alpha0[:, None, None]
+            self.colour_levels.append(nn.Parameter(torch.zeros(num_planes, 3, *size(s), device=rgb.device)))
+            self.alpha_levels.append(nn.Parameter(alpha))
 
-    def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
-        color, alpha = self._logits(g.transpose(0, 1))
-        return torch.sigmoid(color.permute(2, 0, 1)), _opaque_back(torch.sigmoid(alpha.T))
+    def forward(
+        self,
+        g: torch.Tensor,
+        plane_z: torch.Tensor,
+        dirs: torch.Tensor,
+        colour_where: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    ):
+        grid = g.transpose(0, 1)  # [D, R, 2], the samplers' layout
+        alpha = _opaque_back(torch.sigmoid(self._alpha_logits(grid).T))
+        where = None if colour_where is None else colour_where(alpha).T
+        return torch.sigmoid(self._colour_logits(grid, where).permute(2, 0, 1)), alpha
 
     @torch.no_grad()
     def on_texel_grid(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor, chunk: int = 0):
         """:meth:`MPIField.on_texel_grid` without the directions: every texel at once, in the
         layout the samplers return (no reordering of the D x h x w samples)."""
         h, w, _ = g.shape
-        color, alpha = self._logits(g.reshape(1, -1, 2).expand(len(plane_z), -1, 2))
-        alpha = alpha.sigmoid_()
+        grid = g.reshape(1, -1, 2).expand(len(plane_z), -1, 2).contiguous()
+        alpha = self._alpha_logits(grid).sigmoid_()
         alpha[-1] = 1.0  # the back plane opaque
-        return torch.cat([color.sigmoid_(), alpha[:, None]], 1).reshape(-1, 4, h, w)
+        return torch.cat([self._colour_logits(grid, None).sigmoid_(), alpha[:, None]], 1).reshape(-1, 4, h, w)
 
-    def _logits(self, grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Colour logits [D, 3, R] (base plus levels) and alpha logits [D, R] at grid [D, R, 2]."""
+    def _alpha_logits(self, grid: torch.Tensor) -> torch.Tensor:
+        """Alpha logits [D, R] at grid [D, R, 2]."""
+        if plane_sampling.supported(grid, self.alpha_levels.parameters()):  # the compiled CPU sampler
+            return plane_sampling.sample_planes(grid, range(len(grid)), list(self.alpha_levels))[:, 0]
+        grid = grid[:, None]  # [D, 1, R, 2]
+        return sum(F.grid_sample(lvl, grid, align_corners=False)[:, 0, 0] for lvl in self.alpha_levels)  # type: ignore[return-value]
+
+    def _colour_logits(self, grid: torch.Tensor, where: torch.Tensor | None) -> torch.Tensor:
+        """Colour logits [D, 3, R] (base plus levels) at grid [D, R, 2]; with ``where`` ([D, R]
+        bool) only at the samples it marks, 0 elsewhere (those not sampled, without gradient)."""
         D = grid.shape[0]
         bounds = plane_group_bounds(D, len(self.base))  # plane k takes base k * G // D
         if plane_sampling.supported(grid, self.parameters()):  # the compiled CPU sampler
             groups = [i for i in range(len(self.base)) for _ in range(bounds[i], bounds[i + 1])]
-            base = plane_sampling.sample_planes(grid, groups, [self.base], self.cfg.base_interpolation)
-            logits = plane_sampling.sample_planes(grid, range(D), list(self.levels))  # [D, 4, R]
-        else:
-            base, logits = self._sample_torch(grid, bounds)
-        color, alpha = logits.split([3, 1], 1)  # type: ignore[union-attr]
-        return color + base, alpha.squeeze(1)
+            base = plane_sampling.sample_planes(grid, groups, [self.base], self.cfg.base_interpolation, where=where)
+            return base + plane_sampling.sample_planes(grid, range(D), list(self.colour_levels), where=where)
+        logits = self._colour_torch(grid, bounds)
+        return logits if where is None else torch.where(where[:, None], logits, torch.zeros_like(logits))
 
-    def _sample_torch(self, grid: torch.Tensor, bounds: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
-        """The base colours [D, 3, R] and the summed levels [D, 4, R] at grid [D, R, 2], with
-        ``grid_sample`` (any device; :mod:`cmc.mpi.plane_sampling` computes the same on the CPU)."""
+    def _colour_torch(self, grid: torch.Tensor, bounds: list[int]) -> torch.Tensor:
+        """:meth:`_colour_logits` at every sample with ``grid_sample`` (any device;
+        :mod:`cmc.mpi.plane_sampling` computes the same on the CPU)."""
         grid = grid[:, None]  # [D, 1, R, 2]
         base = torch.cat(
             [
@@ -234,8 +257,7 @@ class PyramidPlaneField(MPIField):
                 for i, (k0, k1) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))
             ]
         )
-        logits = sum(F.grid_sample(lvl, grid, align_corners=False).squeeze(2) for lvl in self.levels)
-        return base, logits  # type: ignore[return-value]
+        return base + sum(F.grid_sample(lvl, grid, align_corners=False).squeeze(2) for lvl in self.colour_levels)
 
 
 class TextureField(MPIField):
@@ -256,7 +278,7 @@ class TextureField(MPIField):
         alpha = _opaque_back(rgba[:, 3].transpose(0, -1)).transpose(0, -1)[:, None]
         self.register_buffer("premultiplied", torch.cat([rgba[:, :3] * alpha, alpha], 1))
 
-    def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor):
+    def forward(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor, colour_where=None):
         grid = g.permute(1, 0, 2)[:, None]
         if self.colour_interpolation == "bicubic":  # colour bicubic, alpha alone bilinear
             rgb = sample_colour_bicubic(self.rgba[:, :3], grid)[:, :, 0].permute(2, 0, 1)

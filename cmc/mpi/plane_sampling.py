@@ -181,12 +181,15 @@ def _scatter_cubic(grad_out, t, gx, gy, grad_tex, k, r):
 
 
 @numba.njit(**_JIT)
-def _forward(tex, grid, plane_texture, out, p0, p1, cubic):
+def _forward(tex, grid, plane_texture, out, p0, p1, cubic, where):
     """out[k, c, r] += sample of tex[plane_texture[k], c] at grid[k, r] (bilinear, or bicubic
-    where ``cubic``), for k in [p0, p1)."""
+    where ``cubic``), for k in [p0, p1) and, unless ``where`` is empty, only where ``where[k, r]``."""
+    masked = where.shape[0] > 0
     for k in range(p0, p1):
         t = plane_texture[k]
         for r in range(grid.shape[1]):
+            if masked and not where[k, r]:
+                continue
             if cubic:
                 _gather_cubic(tex, t, grid[k, r, 0], grid[k, r, 1], out, k, r)
             else:
@@ -194,14 +197,17 @@ def _forward(tex, grid, plane_texture, out, p0, p1, cubic):
 
 
 @numba.njit(**_JIT)
-def _backward(grad_out, grid, plane_texture, grad_tex, p0, p1, cubic):
+def _backward(grad_out, grid, plane_texture, grad_tex, p0, p1, cubic, where):
     """grad_tex[t] = the transpose of :func:`_forward` applied to grad_out[k], summed over the
     planes k of texture t, for the textures of planes [p0, p1), which no other range holds."""
     grad_tex[plane_texture[p0] : plane_texture[p1 - 1] + 1] = 0  # zeroed here: fresh pages in parallel
     C = grad_out.shape[1]
+    masked = where.shape[0] > 0
     for k in range(p0, p1):
         t = plane_texture[k]
         for r in range(grid.shape[1]):
+            if masked and not where[k, r]:
+                continue
             nonzero = False
             for c in range(C):
                 nonzero = nonzero or grad_out[k, c, r] != 0
@@ -214,21 +220,21 @@ def _backward(grad_out, grid, plane_texture, grad_tex, p0, p1, cubic):
 
 
 @numba.njit(parallel=True, **_JIT)
-def _forward_parallel(tex, grid, plane_texture, out, cuts, cubic):
+def _forward_parallel(tex, grid, plane_texture, out, cuts, cubic, where):
     for i in numba.prange(len(cuts) - 1):
-        _forward(tex, grid, plane_texture, out, cuts[i], cuts[i + 1], cubic)
+        _forward(tex, grid, plane_texture, out, cuts[i], cuts[i + 1], cubic, where)
 
 
 @numba.njit(parallel=True, **_JIT)
-def _backward_parallel(grad_out, grid, plane_texture, grad_tex, cuts, cubic):
+def _backward_parallel(grad_out, grid, plane_texture, grad_tex, cuts, cubic, where):
     for i in numba.prange(len(cuts) - 1):
-        _backward(grad_out, grid, plane_texture, grad_tex, cuts[i], cuts[i + 1], cubic)
+        _backward(grad_out, grid, plane_texture, grad_tex, cuts[i], cuts[i + 1], cubic, where)
 
 
 class _SamplePlanes(torch.autograd.Function):
     @staticmethod
     def forward(
-        ctx, grid: torch.Tensor, plane_texture: np.ndarray, cubic: bool, *textures: torch.Tensor
+        ctx, grid: torch.Tensor, where: np.ndarray, plane_texture: np.ndarray, cubic: bool, *textures: torch.Tensor
     ) -> torch.Tensor:
         D, R = grid.shape[:2]
         out = torch.zeros(D, textures[0].shape[1], R)
@@ -237,9 +243,9 @@ class _SamplePlanes(torch.autograd.Function):
         g = grid.numpy()
         with kernel_cache.PARALLEL_LAUNCH:
             for tex in textures:
-                _forward_parallel(tex.detach().numpy(), g, plane_texture, out.numpy(), chunks, cubic)
+                _forward_parallel(tex.detach().numpy(), g, plane_texture, out.numpy(), chunks, cubic, where)
         ctx.save_for_backward(grid)
-        ctx.plane_texture, ctx.chunks, ctx.cubic = plane_texture, chunks, cubic
+        ctx.where, ctx.plane_texture, ctx.chunks, ctx.cubic = where, plane_texture, chunks, cubic
         ctx.shapes = [t.shape for t in textures]
         return out
 
@@ -248,15 +254,18 @@ class _SamplePlanes(torch.autograd.Function):
         (grid,) = ctx.saved_tensors
         go, g = grad_out.contiguous().numpy(), grid.numpy()
         grads = []
-        for shape, needed in zip(ctx.shapes, ctx.needs_input_grad[3:], strict=True):
+        for shape, needed in zip(ctx.shapes, ctx.needs_input_grad[4:], strict=True):
             gt = None
             if needed:
                 gt = torch.empty(shape)
                 with kernel_cache.PARALLEL_LAUNCH:  # zeroes and fills the textures planes read
-                    _backward_parallel(go, g, ctx.plane_texture, gt.numpy(), ctx.chunks, ctx.cubic)
+                    _backward_parallel(go, g, ctx.plane_texture, gt.numpy(), ctx.chunks, ctx.cubic, ctx.where)
                 gt[np.setdiff1d(np.arange(shape[0]), ctx.plane_texture)] = 0  # and those none reads
             grads.append(gt)
-        return (None, None, None, *grads)
+        return (None, None, None, None, *grads)
+
+
+_NO_MASK = np.zeros((0, 0), np.bool_)  # sample_planes without ``where``: every sample
 
 
 def supported(grid: torch.Tensor, textures: Sequence[torch.Tensor]) -> bool:
@@ -266,12 +275,17 @@ def supported(grid: torch.Tensor, textures: Sequence[torch.Tensor]) -> bool:
 
 
 def sample_planes(
-    grid: torch.Tensor, plane_texture: Sequence[int], textures: Sequence[torch.Tensor], mode: str = "bilinear"
+    grid: torch.Tensor,
+    plane_texture: Sequence[int],
+    textures: Sequence[torch.Tensor],
+    mode: str = "bilinear",
+    where: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Sum over ``textures`` of their samples (``mode`` "bilinear" or "bicubic", as
     ``grid_sample``'s): ``out[k, :, r]`` = sum_t of texture
     ``plane_texture[k]`` of ``textures[t]`` at grid point ``grid[k, r]`` (``grid_sample``
-    coordinates, ``align_corners=False``, zero outside).
+    coordinates, ``align_corners=False``, zero outside); with ``where`` ([D, R] bool), only the
+    samples it marks, 0 at the others (which then pass no gradient).
 
     Shape: grid [D, R, 2]; textures [T_i, C, H_i, W_i] (same C, any sizes), the planes of one
     texture contiguous -> [D, C, R]. Differentiable in the textures, not in the grid; only where
@@ -281,7 +295,8 @@ def sample_planes(
         raise ValueError("sample_planes takes float32 CPU tensors and a grid without gradient")
     check_interpolation(mode, "mode")
     pt = np.asarray(plane_texture, np.int64)
-    return _SamplePlanes.apply(grid.contiguous(), pt, mode == "bicubic", *textures)
+    mask = _NO_MASK if where is None else where.contiguous().numpy()
+    return _SamplePlanes.apply(grid.contiguous(), mask, pt, mode == "bicubic", *textures)
 
 
 def warm_up() -> None:
@@ -289,4 +304,5 @@ def warm_up() -> None:
     training step of a fresh process does not pay the compile; the Dockerfiles call it."""
     tex = torch.zeros(2, 4, 3, 3, requires_grad=True)
     for mode in INTERPOLATIONS:
-        sample_planes(torch.zeros(2, 5, 2), [0, 1], [tex], mode).sum().backward()
+        for where in (None, torch.ones(2, 5, dtype=torch.bool)):
+            sample_planes(torch.zeros(2, 5, 2), [0, 1], [tex], mode, where).sum().backward()

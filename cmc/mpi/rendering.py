@@ -180,6 +180,15 @@ def composite_torch(
     return RayOutput((w[..., None] * rgb).sum(1), (w * depth).sum(1), w.sum(1), w)
 
 
+def strong_samples(alpha: torch.Tensor, min_weight: float) -> torch.Tensor:
+    """[R, D] bool: the samples whose weight in their ray (alpha [R, D], nearest plane first)
+    is at least ``min_weight``, computed as :func:`composite` computes it."""
+    if alpha.device.type == "cpu" and alpha.dtype == torch.float32:
+        return composite_kernel.strong_samples(alpha, min_weight)
+    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], dim=1), dim=1)
+    return alpha * trans >= min_weight
+
+
 def render_rays(
     field: MPIField, frame: MPIFrame, K_tgt: torch.Tensor, world_from_tgt: torch.Tensor, uv: torch.Tensor
 ) -> RayOutput:
@@ -208,7 +217,9 @@ def render_ray_groups(
             (default 1 for all; True is 1, False is 0: only alpha, the geometry, receives the
             group's gradients). The rendered values do not depend on it.
         colour_grad_min_weight: samples weighing less in their ray pass no gradient to their
-            colour (:func:`composite`).
+            colour (:func:`composite`), and the field need not compute their colour
+            (``MPIField``'s ``colour_where``: such a sample's colour may read 0.5, which moves
+            its ray's colour by at most half the faint samples' summed weight).
     Returns:
         one RayOutput per group.
     """
@@ -233,8 +244,14 @@ def render_ray_groups(
         gs.append(g.clamp(-1.5, 1.5))
         lams.append(lam)
         dirss.append(d_ref / d_ref.norm(dim=-1, keepdim=True))
+    inside_all = torch.cat(insides)
+
+    def strong(alpha: torch.Tensor) -> torch.Tensor:
+        return strong_samples(alpha.detach() * inside_all, colour_grad_min_weight)
+
     # [R, D, 2] as a view of the [D, R, 2] grid the explicit fields sample plane by plane.
-    rgb, alpha = field(torch.cat(gs, 1).transpose(0, 1), frame.plane_z, torch.cat(dirss))
+    grid = torch.cat(gs, 1).transpose(0, 1)
+    rgb, alpha = field(grid, frame.plane_z, torch.cat(dirss), strong if colour_grad_min_weight > 0 else None)
     # split, not slices: the backward of a slice fills a zero gradient of the whole batch per group
     sizes = [len(lam) for lam in lams]
     outs = []
