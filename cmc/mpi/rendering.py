@@ -171,8 +171,7 @@ def composite_torch(
     colour_grad_scale: float = 1.0,
 ) -> RayOutput:
     """:func:`composite` as torch ops (any device)."""
-    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], dim=1), dim=1)
-    w = alpha * trans
+    w = _weights_torch(alpha)
     if colour_grad_scale != 1.0 and rgb.requires_grad:
         rgb = rgb.detach() + colour_grad_scale * (rgb - rgb.detach())
     if colour_grad_min_weight > 0 and rgb.requires_grad:
@@ -180,13 +179,18 @@ def composite_torch(
     return RayOutput((w[..., None] * rgb).sum(1), (w * depth).sum(1), w.sum(1), w)
 
 
+def _weights_torch(alpha: torch.Tensor) -> torch.Tensor:
+    """Each plane's weight [R, D] in its ray: alpha [R, D] times the transmittance before it."""
+    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], dim=1), dim=1)
+    return alpha * trans
+
+
 def strong_samples(alpha: torch.Tensor, min_weight: float) -> torch.Tensor:
     """[R, D] bool: the samples whose weight in their ray (alpha [R, D], nearest plane first)
     is at least ``min_weight``, computed as :func:`composite` computes it."""
     if alpha.device.type == "cpu" and alpha.dtype == torch.float32:
         return composite_kernel.strong_samples(alpha, min_weight)
-    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], dim=1), dim=1)
-    return alpha * trans >= min_weight
+    return _weights_torch(alpha) >= min_weight
 
 
 def render_rays(
@@ -244,14 +248,15 @@ def render_ray_groups(
         gs.append(g.clamp(-1.5, 1.5))
         lams.append(lam)
         dirss.append(d_ref / d_ref.norm(dim=-1, keepdim=True))
-    inside_all = torch.cat(insides)
+    colour_where = None
+    if colour_grad_min_weight > 0:
+        inside_all = torch.cat(insides)
 
-    def strong(alpha: torch.Tensor) -> torch.Tensor:
-        return strong_samples(alpha.detach() * inside_all, colour_grad_min_weight)
+        def colour_where(alpha: torch.Tensor) -> torch.Tensor:
+            return strong_samples(alpha.detach() * inside_all, colour_grad_min_weight)
 
     # [R, D, 2] as a view of the [D, R, 2] grid the explicit fields sample plane by plane.
-    grid = torch.cat(gs, 1).transpose(0, 1)
-    rgb, alpha = field(grid, frame.plane_z, torch.cat(dirss), strong if colour_grad_min_weight > 0 else None)
+    rgb, alpha = field(torch.cat(gs, 1).transpose(0, 1), frame.plane_z, torch.cat(dirss), colour_where)
     # split, not slices: the backward of a slice fills a zero gradient of the whole batch per group
     sizes = [len(lam) for lam in lams]
     outs = []
