@@ -133,15 +133,6 @@ class PyramidFieldConfig:
     # probable plane) start as the background continued from nearby (cmc.method.model.hidden_layer_colours);
     # False: every group starts as the reference photo.
     hidden_colour_everywhere: bool = True
-    # > 0: a surface level at this scale of the plane extent: per texel one surface's position
-    # (in planes) and strength, adding strength * exp(-(k - position)^2 / (2 surface_width^2)) to
-    # plane k's alpha logit, so that a coarse texel's opacity follows a surface across the planes
-    # it crosses (a slanted table or floor) instead of lying on one plane; 0: none.
-    surface_scale: float = 0.0
-    surface_width: float = 0.5  # in planes
-
-
-SURFACE_POSITION_UNIT = 8.0  # planes per unit of the surface level's stored position (it moves faster)
 
 
 def plane_group_bounds(num_planes: int, groups: int) -> list[int]:
@@ -207,15 +198,6 @@ class PyramidPlaneField(MPIField):
                 alpha[:, 0] = alpha0[:, None, None]
             self.colour_levels.append(nn.Parameter(torch.zeros(num_planes, 3, *size(s), device=rgb.device)))
             self.alpha_levels.append(nn.Parameter(alpha))
-        self.surface: nn.Parameter | None = None
-        if cfg.surface_scale > 0:  # [1, 2, h, w]: position in planes, strength (0: no effect yet)
-            position = torch.full((1, 1, *size(cfg.surface_scale)), (num_planes - 1) / 2, device=rgb.device)
-            if init_alpha is not None:
-                position = F.interpolate(
-                    expected_plane(init_alpha.float())[None, None], size=size(cfg.surface_scale), mode="area"
-                )
-            position = position / SURFACE_POSITION_UNIT
-            self.surface = nn.Parameter(torch.cat([position, torch.zeros_like(position)], 1).contiguous())
 
     def forward(
         self,
@@ -242,19 +224,9 @@ class PyramidPlaneField(MPIField):
     def _alpha_logits(self, grid: torch.Tensor) -> torch.Tensor:
         """Alpha logits [D, R] at grid [D, R, 2]."""
         if plane_sampling.supported(grid, self.alpha_levels.parameters()):  # the compiled CPU sampler
-            logits = plane_sampling.sample_planes(grid, range(len(grid)), list(self.alpha_levels))[:, 0]
-        else:
-            g4 = grid[:, None]  # [D, 1, R, 2]
-            logits = sum(F.grid_sample(lvl, g4, align_corners=False)[:, 0, 0] for lvl in self.alpha_levels)
-        if self.surface is None:
-            return logits  # type: ignore[return-value]
-        if plane_sampling.supported(grid, [self.surface]):
-            s = plane_sampling.sample_planes(grid, [0] * len(grid), [self.surface])  # [D, 2, R]
-        else:
-            s = F.grid_sample(self.surface.expand(len(grid), -1, -1, -1), grid[:, None], align_corners=False)[:, :, 0]
-        k = torch.arange(len(grid), dtype=grid.dtype, device=grid.device)[:, None]
-        offset = (k - SURFACE_POSITION_UNIT * s[:, 0]) / self.cfg.surface_width
-        return logits + s[:, 1] * torch.exp(-0.5 * offset**2)
+            return plane_sampling.sample_planes(grid, range(len(grid)), list(self.alpha_levels))[:, 0]
+        grid = grid[:, None]  # [D, 1, R, 2]
+        return sum(F.grid_sample(lvl, grid, align_corners=False)[:, 0, 0] for lvl in self.alpha_levels)  # type: ignore[return-value]
 
     def _colour_logits(self, grid: torch.Tensor, where: torch.Tensor | None) -> torch.Tensor:
         """Colour logits [D, 3, R] (base plus levels) at grid [D, R, 2]; with ``where`` ([D, R]
@@ -286,15 +258,6 @@ class PyramidPlaneField(MPIField):
             ]
         )
         return base + sum(F.grid_sample(lvl, grid, align_corners=False).squeeze(2) for lvl in self.colour_levels)
-
-
-def expected_plane(alpha: torch.Tensor) -> torch.Tensor:
-    """The mean plane index [h, w] of the front-to-back composite of alphas [D, h, w] (the back
-    plane taking what passes every other)."""
-    alpha = _opaque_back(alpha.transpose(0, -1)).transpose(0, -1)
-    transmittance = torch.cumprod(torch.cat([torch.ones_like(alpha[:1]), 1 - alpha[:-1]]), 0)
-    k = torch.arange(len(alpha), dtype=alpha.dtype, device=alpha.device)
-    return torch.einsum("dhw,d->hw", alpha * transmittance, k)
 
 
 class TextureField(MPIField):
