@@ -33,7 +33,8 @@ class ProgressBar:
 
     def __call__(self, p: Progress) -> None:
         self.bar.n = p.step
-        self.bar.set_postfix(mse=f"{p.losses['mse']:.4f}", ac=f"{p.losses['ac']:.4f}", refresh=False)
+        shown = {k: f"{v:.4f}" for k, v in p.losses.items() if k in ("mse", "ac", "dc") and (k == "mse" or v)}
+        self.bar.set_postfix(shown, refresh=False)
         self.bar.refresh()
 
     def close(self) -> None:

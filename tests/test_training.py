@@ -125,10 +125,35 @@ def test_progress_reports_every_step_with_eta(scene):
 
 def test_consistency_terms_only_after_warmup(scene):
     cfg = tiny(steps=10)  # recon_only_fraction 0.3 -> steps 0..2 use L_MSE only
+    cfg = replace(cfg, loss=replace(cfg.loss, lambda_ac=0.5))
     t = Trainer(scene, cfg)
     assert t.compute_losses(2).ac.item() == 0.0
     late = t.compute_losses(3)
     assert late.ac.item() > 0 and late.dc.item() > 0 and late.dc_input.item() > 0
+
+
+def test_without_appearance_consistency_no_gradient_flows_through_the_unseen_colours(scene):
+    """With lambda_ac = 0 (``fast``) the unseen poses' colours serve nothing: L_ac is 0 and not
+    computed, and every other term and every gradient is what it is with L_ac computed and
+    weighted by almost 0."""
+    cfg = tiny(steps=10)
+    assert cfg.loss.lambda_ac == 0 and cfg.unseen_poses == 1
+    t = Trainer(scene, cfg)
+
+    def losses_and_grads(lambda_ac: float):
+        t.cfg = replace(cfg, loss=replace(cfg.loss, lambda_ac=lambda_ac))
+        t.optimizer.zero_grad(set_to_none=True)
+        losses = t.compute_losses(5)
+        losses.total.backward()
+        return losses, [p.grad.clone() for p in t.model.parameters()]
+
+    fast, fast_grads = losses_and_grads(0.0)
+    slow, slow_grads = losses_and_grads(1e-30)
+    assert fast.ac.item() == 0.0 and slow.ac.item() > 0
+    for name in ("mse", "dc_input", "dc", "distortion", "alpha_entropy"):
+        assert getattr(fast, name).item() == pytest.approx(getattr(slow, name).item(), rel=1e-6), name
+    for a, b in zip(fast_grads, slow_grads, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-9)
 
 
 def test_checkpoint_from_other_config_is_refused(scene, tmp_path):

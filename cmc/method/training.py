@@ -231,8 +231,9 @@ class Trainer:
         def rays_of_mpi(i: int) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
             return [(K, P, uv if t == i or t >= n else uv[shared[t]]) for t, (K, P, uv) in enumerate(groups)]
 
-        # per_mpi[i][t]: MPI i's render of target t (one field query per MPI).
-        unseen_grad = [1.0] * (len(groups) - n)
+        # per_mpi[i][t]: MPI i's render of target t (one field query per MPI). The unseen poses'
+        # colours serve L_ac alone: without it no gradient flows through them.
+        unseen_grad = [1.0 if lc.lambda_ac > 0 else 0.0] * (len(groups) - n)
         per_mpi = [
             render_ray_groups(f, fr, rays_of_mpi(i), self._colour_grads(i) + unseen_grad, cfg.colour_grad_min_weight)
             for i, (f, fr) in enumerate(zip(fields, frames, strict=True))
@@ -270,7 +271,7 @@ class Trainer:
             dc_input=torch.stack([dc_loss(at_shared[j]) for j in range(n)]).mean()
             if full and lc.lambda_dc_input > 0
             else zero,
-            ac=torch.stack([appearance_consistency(o) for o in unseen]).mean() if unseen else zero,
+            ac=torch.stack([appearance_consistency(o) for o in unseen]).mean() if unseen and lc.lambda_ac > 0 else zero,
             dc=torch.stack([dc_loss(o) for o in unseen]).mean() if unseen else zero,
             distortion=distortion(every_out, self.model.cfg.num_planes) if lc.lambda_distortion > 0 else zero,
             alpha_entropy=alpha_entropy(every_out) if lc.lambda_alpha_entropy > 0 else zero,
