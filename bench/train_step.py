@@ -53,9 +53,17 @@ if state:
         rgba = state.pop(key)
         state[key.replace(".levels.", ".colour_levels.")] = rgba[:, :3]
         state[key.replace(".levels.", ".alpha_levels.")] = rgba[:, 3:]
-    for key in [k for k in state if ".colour_levels." in k and k not in expected]:
-        alpha = state.pop(key.replace(".colour_levels.", ".alpha_levels."))
-        state[key.replace(".colour_levels.", ".levels.")] = torch.cat([state.pop(key), alpha], 1)
+    if any(".levels." in k for k in expected):
+        for key in [k for k in state if ".colour_levels." in k and k not in expected]:
+            alpha = state.pop(key.replace(".colour_levels.", ".alpha_levels."))
+            state[key.replace(".colour_levels.", ".levels.")] = torch.cat([state.pop(key), alpha], 1)
+    # Colour levels matched by size (for trees or settings with other `colour_scales`); a level the
+    # state lacks starts at 0, as in a fresh field.
+    colour = {k: state.pop(k) for k in [k for k in state if ".colour_levels." in k]}
+    for key in [k for k in expected if ".colour_levels." in k]:
+        prefix = key.split(".colour_levels.")[0]
+        same = [v for k, v in colour.items() if k.startswith(prefix + ".") and v.shape == expected[key].shape]
+        state[key] = same[0] if same else torch.zeros_like(expected[key])
     trainer.model.load_state_dict(state)
 out = {}
 for phase, start in (("reconstruction_only", 0), ("full", 150)):

@@ -121,7 +121,9 @@ class PyramidFieldConfig:
     """Explicit multi-resolution plane textures and how the plane sweep starts them (defaults:
     the ``fast`` preset's)."""
 
-    scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane colour residual and alpha levels
+    scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane alpha levels
+    # Per-plane colour residual levels, added to the base colour of the plane's group.
+    colour_scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)
     base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
     base_groups: int = 8  # base colours: one per group of adjacent planes (CMCModel: at most one per plane)
     # How rays sample the base colours: "bilinear", or "bicubic" (a sharper reconstruction: a
@@ -196,8 +198,9 @@ class PyramidPlaneField(MPIField):
                 alpha[:, 0] = torch.logit(a[:, 0].clamp(0.01, 0.99))
             elif init_alpha is None and n == len(cfg.scales) - 1:
                 alpha[:, 0] = alpha0[:, None, None]
-            self.colour_levels.append(nn.Parameter(torch.zeros(num_planes, 3, *size(s), device=rgb.device)))
             self.alpha_levels.append(nn.Parameter(alpha))
+        for s in cfg.colour_scales:
+            self.colour_levels.append(nn.Parameter(torch.zeros(num_planes, 3, *size(s), device=rgb.device)))
 
     def forward(
         self,
@@ -236,6 +239,8 @@ class PyramidPlaneField(MPIField):
         if plane_sampling.supported(grid, self.parameters()):  # the compiled CPU sampler
             groups = [i for i in range(len(self.base)) for _ in range(bounds[i], bounds[i + 1])]
             base = plane_sampling.sample_planes(grid, groups, [self.base], self.cfg.base_interpolation, where=where)
+            if not self.colour_levels:
+                return base
             return base + plane_sampling.sample_planes(grid, range(D), list(self.colour_levels), where=where)
         logits = self._colour_torch(grid, bounds)
         return logits if where is None else torch.where(where[:, None], logits, torch.zeros_like(logits))
