@@ -21,9 +21,9 @@ HERE = Path(__file__).resolve().parent
 REPORTS = HERE / "reports"
 
 # The current report of each kind (in reports/current).
-SCENE_REPORTS = {s: f"colourwhere_test_{s}.json" for s in ("fern", "room", "trex")}
-VAL_REPORTS = {s: f"colourwhere_val_{s}.json" for s in ("fern", "room", "trex")}
-SYNTHETIC_REPORT = "colourwhere_synthetic.json"
+SCENE_REPORTS = {s: f"colourlevels3_test_{s}.json" for s in ("fern", "room", "trex")}
+VAL_REPORTS = {s: f"colourlevels3_val_{s}.json" for s in ("fern", "room", "trex")}
+SYNTHETIC_REPORT = "colourlevels3_synthetic.json"
 POSE_REPORTS = {
     "fern": "poses_e2e_fern_wide.json",
     "room": "poses_e2e_room_wide.json",
