@@ -211,7 +211,7 @@ class PyramidPlaneField(MPIField):
     ):
         grid = g.transpose(0, 1)  # [D, R, 2], the samplers' layout
         alpha = _opaque_back(torch.sigmoid(self._alpha_logits(grid).T))
-        where = None if colour_where is None else colour_where(alpha).T
+        where = None if colour_where is None else colour_where(alpha).T.contiguous()  # once for both samplers
         return torch.sigmoid(self._colour_logits(grid, where).permute(2, 0, 1)), alpha
 
     @torch.no_grad()
