@@ -92,6 +92,30 @@ def test_bicubic_keeps_detail_that_bilinear_blurs_between_texels():
     assert err["bicubic"] < 0.5 * err["bilinear"]
 
 
+@pytest.mark.parametrize("channels", [1, 3])
+def test_fold_levels_matches_interpolate_and_its_gradient(channels):
+    """The compiled fold against its definition with ``F.interpolate`` (sizes not all halves of
+    each other, as fern's 227 x 302 over 114 x 151 over 57 x 76), values and gradients; a
+    constant coarsest level folds to that constant everywhere (the resampling weights sum to 1)."""
+    gen = torch.Generator().manual_seed(3)
+    sizes = [(23, 30), (12, 15), (6, 8), (3, 4)]
+    levels = [torch.randn(5, channels, h, w, generator=gen) for h, w in sizes]
+    weights = torch.randn(5, channels, *sizes[0], generator=gen)
+    outs, grads = [], []
+    for fn in (plane_sampling.fold_levels, plane_sampling.fold_levels_reference):
+        leaves = [t.clone().requires_grad_() for t in levels]
+        out = fn(leaves)
+        (out * weights).sum().backward()
+        outs.append(out.detach())
+        grads.append([t.grad for t in leaves])
+    torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=1e-5)
+    for mine, theirs in zip(*grads, strict=True):
+        torch.testing.assert_close(mine, theirs, rtol=0, atol=1e-4)
+        assert mine.abs().sum() > 0
+    flat = [torch.zeros(5, channels, h, w) for h, w in sizes[:-1]] + [torch.full((5, channels, *sizes[-1]), 0.7)]
+    torch.testing.assert_close(plane_sampling.fold_levels(flat), torch.full((5, channels, *sizes[0]), 0.7))
+
+
 @pytest.mark.parametrize("interpolation", ["bilinear", "bicubic"])
 @pytest.mark.parametrize(("num_planes", "groups"), [(12, 4), (10, 4)])
 @pytest.mark.parametrize("masked", [False, True])

@@ -11,9 +11,11 @@ Fields:
   raw ray direction) -> (rgb, alpha).
 * :class:`PyramidPlaneField` -- the ``fast`` preset: explicit textures. Colour is a full-resolution
   base image shared by a group of adjacent planes (initialised to the reference photo) plus a
-  per-plane multi-resolution residual; alpha is a per-plane multi-resolution grid. Summing
-  bilinear samples of coarse-to-fine levels makes coarse levels learn first and acts as a
-  smoothness prior. With one base for all planes, a surface hidden behind a nearer one in the
+  per-plane multi-resolution residual; alpha is a per-plane multi-resolution grid. Each pyramid
+  is folded onto its finest grid (every coarser level resampled bilinearly onto the next finer
+  one and added, :func:`cmc.mpi.plane_sampling.fold_levels`) and that one texture is sampled:
+  coarse levels learn first and act as a smoothness prior, and a sample costs one texture's
+  taps, not one per level. With one base for all planes, a surface hidden behind a nearer one in the
   reference photo would have that nearer surface's fine texture wherever another view sees it;
   a base per group of planes gives it its own.
 * :class:`TextureField` -- fixed RGBA textures, the form a baked MPI takes.
@@ -146,10 +148,12 @@ def plane_group_bounds(num_planes: int, groups: int) -> list[int]:
 class PyramidPlaneField(MPIField):
     """Explicit per-plane textures; see the module docstring.
 
-    Colour logits of plane k = base[k * G // D](g) + sum_l colour_l[k](g); alpha logit =
-    sum_l alpha_l[k](g), where base is [G, 3, h, w] (G = ``cfg.base_groups``, one base per
+    Colour logits of plane k = base[k * G // D](g) + fold(colour)[k](g); alpha logit =
+    fold(alpha)[k](g), where base is [G, 3, h, w] (G = ``cfg.base_groups``, one base per
     group of about D / G adjacent planes, sampled as ``cfg.base_interpolation``), colour level l
-    is [D, 3, h * s_l, w * s_l] and alpha level l [D, 1, h * s_l, w * s_l], sampled bilinearly.
+    is [D, 3, h * s_l, w * s_l] and alpha level l [D, 1, h * s_l, w * s_l], and fold(levels)
+    (:func:`cmc.mpi.plane_sampling.fold_levels`) the levels summed on the finest one's grid,
+    sampled bilinearly.
     Alpha and colour are apart so that a query reads alpha first and colour only where the
     caller needs it (``forward``'s ``colour_where``).
 
@@ -226,10 +230,10 @@ class PyramidPlaneField(MPIField):
 
     def _alpha_logits(self, grid: torch.Tensor) -> torch.Tensor:
         """Alpha logits [D, R] at grid [D, R, 2]."""
-        if plane_sampling.supported(grid, self.alpha_levels.parameters()):  # the compiled CPU sampler
-            return plane_sampling.sample_planes(grid, range(len(grid)), list(self.alpha_levels))[:, 0]
-        grid = grid[:, None]  # [D, 1, R, 2]
-        return sum(F.grid_sample(lvl, grid, align_corners=False)[:, 0, 0] for lvl in self.alpha_levels)  # type: ignore[return-value]
+        alpha = plane_sampling.fold_levels(list(self.alpha_levels))
+        if plane_sampling.supported(grid, [alpha]):  # the compiled CPU sampler
+            return plane_sampling.sample_planes(grid, range(len(grid)), [alpha])[:, 0]
+        return F.grid_sample(alpha, grid[:, None], align_corners=False)[:, 0, 0]
 
     def _colour_logits(self, grid: torch.Tensor, where: torch.Tensor | None) -> torch.Tensor:
         """Colour logits [D, 3, R] (base plus levels) at grid [D, R, 2]; with ``where`` ([D, R]
@@ -241,7 +245,8 @@ class PyramidPlaneField(MPIField):
             base = plane_sampling.sample_planes(grid, groups, [self.base], self.cfg.base_interpolation, where=where)
             if not self.colour_levels:
                 return base
-            return base + plane_sampling.sample_planes(grid, range(D), list(self.colour_levels), where=where)
+            residual = plane_sampling.fold_levels(list(self.colour_levels))
+            return base + plane_sampling.sample_planes(grid, range(D), [residual], where=where)
         logits = self._colour_torch(grid, bounds)
         return logits if where is None else torch.where(where[:, None], logits, torch.zeros_like(logits))
 
@@ -262,7 +267,10 @@ class PyramidPlaneField(MPIField):
                 for i, (k0, k1) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))
             ]
         )
-        return base + sum(F.grid_sample(lvl, grid, align_corners=False).squeeze(2) for lvl in self.colour_levels)
+        if not self.colour_levels:
+            return base
+        residual = plane_sampling.fold_levels(list(self.colour_levels))
+        return base + F.grid_sample(residual, grid, align_corners=False).squeeze(2)
 
 
 class TextureField(MPIField):

@@ -1,5 +1,6 @@
 """Compiled CPU bilinear and bicubic sampling of plane textures, with its backward pass: what
-training spends most of its time on.
+training spends most of its time on; and the fold of a texture pyramid onto its finest grid
+(:func:`fold_levels`), so that a sample reads one texture instead of one per level.
 
 :func:`sample_planes` computes ``sum_t grid_sample(textures[t], grid)`` as
 :func:`torch.nn.functional.grid_sample` does (bilinear or bicubic, ``align_corners=False``,
@@ -27,6 +28,7 @@ from collections.abc import Sequence
 import numba
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from cmc import kernel_cache
 
@@ -299,6 +301,111 @@ def sample_planes(
     return _SamplePlanes.apply(grid.contiguous(), mask, pt, mode == "bicubic", *textures)
 
 
+def _linear_taps(n_in: int, n_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Taps of linear resampling from n_in to n_out texels along one axis, as ``F.interpolate``'s
+    "bilinear" with ``size`` and ``align_corners=False``: output texel i reads texels i0[i] and
+    i1[i] with weights 1 - f[i] and f[i]."""
+    src = np.maximum((np.arange(n_out, dtype=np.float32) + np.float32(0.5)) * np.float32(n_in / n_out) - 0.5, 0)
+    i0 = np.minimum(src.astype(np.int64), n_in - 1)
+    return i0, np.minimum(i0 + 1, n_in - 1), (src - i0).astype(np.float32)
+
+
+@numba.njit(parallel=True, **_JIT)
+def _add_upsampled(fine, coarse, out, y0, y1, fy, x0, x1, fx):  # pragma: no cover - compiled
+    """out[n] = fine[n] + coarse[n] resampled bilinearly onto fine's grid (taps per axis from
+    :func:`_linear_taps`); [N, H, W] and [N, h, w]. Each output row: the two coarse rows it
+    reads blended first, then resampled along x."""
+    N, H, W = fine.shape
+    w = coarse.shape[2]
+    for n in numba.prange(N):
+        row = np.empty(w, np.float32)
+        for i in range(H):
+            a, b, v = y0[i], y1[i], fy[i]
+            for c in range(w):
+                row[c] = coarse[n, a, c] + v * (coarse[n, b, c] - coarse[n, a, c])
+            for j in range(W):
+                left = row[x0[j]]
+                out[n, i, j] = fine[n, i, j] + left + fx[j] * (row[x1[j]] - left)
+
+
+@numba.njit(parallel=True, **_JIT)
+def _upsampled_transpose(grad, grad_coarse, y0, y1, fy, x0, x1, fx):  # pragma: no cover - compiled
+    """grad_coarse[n] = the transpose of :func:`_add_upsampled`'s resampling applied to grad[n]."""
+    N, H, W = grad.shape
+    w = grad_coarse.shape[2]
+    for n in numba.prange(N):
+        grad_coarse[n] = 0
+        row = np.empty(w, np.float32)
+        for i in range(H):
+            row[:] = 0
+            for j in range(W):
+                g = grad[n, i, j]
+                right = g * fx[j]
+                row[x0[j]] += g - right
+                row[x1[j]] += right
+            a, b, v = y0[i], y1[i], fy[i]
+            for c in range(w):
+                lower = row[c] * v
+                grad_coarse[n, a, c] += row[c] - lower
+                grad_coarse[n, b, c] += lower
+
+
+class _FoldLevels(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, *levels: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        taps, folded = [], levels[-1].detach().contiguous()
+        for fine in reversed(levels[:-1]):
+            (h, w), (H, W) = folded.shape[-2:], fine.shape[-2:]
+            t = (*_linear_taps(h, H), *_linear_taps(w, W))
+            out = torch.empty(fine.shape)
+            with kernel_cache.PARALLEL_LAUNCH:
+                _add_upsampled(
+                    fine.detach().contiguous().numpy().reshape(-1, H, W),
+                    folded.numpy().reshape(-1, h, w),
+                    out.numpy().reshape(-1, H, W),
+                    *t,
+                )
+            taps.append(t)
+            folded = out
+        ctx.taps, ctx.shapes = taps[::-1], [lvl.shape for lvl in levels]
+        return folded
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        grads = [grad]
+        for t, shape in zip(ctx.taps, ctx.shapes[1:], strict=True):
+            g = grads[-1].contiguous()
+            gc = torch.empty(shape)
+            with kernel_cache.PARALLEL_LAUNCH:
+                _upsampled_transpose(g.numpy().reshape(-1, *g.shape[-2:]), gc.numpy().reshape(-1, *shape[-2:]), *t)
+            grads.append(gc)
+        return tuple(grads)
+
+
+def fold_levels_reference(levels: Sequence[torch.Tensor]) -> torch.Tensor:
+    """:func:`fold_levels` with ``F.interpolate`` (any device; the slow twin of the kernels)."""
+    folded = levels[-1]
+    for fine in reversed(levels[:-1]):
+        folded = fine + F.interpolate(folded, size=fine.shape[-2:], mode="bilinear", align_corners=False)
+    return folded
+
+
+def fold_levels(levels: Sequence[torch.Tensor]) -> torch.Tensor:
+    """A pyramid of textures folded onto its finest grid: F_{L-1} = levels[L-1], F_l = levels[l] +
+    F_{l+1} resampled bilinearly onto levels[l]'s grid (``F.interpolate``, ``align_corners=False``);
+    returns F_0. A sampler then reads one texture where it read one per level; each coarse level
+    reaches a sample through successive linear resamplings (a smooth basis, wider than its texel).
+
+    Shape: levels [P, C, H_l, W_l], finest first -> [P, C, H_0, W_0]; differentiable in every
+    level. Compiled on the CPU (float32), :func:`fold_levels_reference` elsewhere.
+    """
+    if len(levels) == 1:
+        return levels[0]
+    if all(t.device.type == "cpu" and t.dtype == torch.float32 for t in levels):
+        return _FoldLevels.apply(*levels)
+    return fold_levels_reference(levels)
+
+
 def warm_up() -> None:
     """Compile the kernels now into numba's on-disk cache (:mod:`cmc.kernel_cache`), so the first
     training step of a fresh process does not pay the compile; the Dockerfiles call it."""
@@ -306,3 +413,4 @@ def warm_up() -> None:
     for mode in INTERPOLATIONS:
         for where in (None, torch.ones(2, 5, dtype=torch.bool)):
             sample_planes(torch.zeros(2, 5, 2), [0, 1], [tex], mode, where).sum().backward()
+    fold_levels([tex, torch.zeros(2, 4, 2, 2, requires_grad=True)]).sum().backward()
