@@ -21,18 +21,18 @@ HERE = Path(__file__).resolve().parent
 REPORTS = HERE / "reports"
 
 # The current report of each kind (in reports/current).
-SCENE_REPORTS = {s: f"colourlevels3_test_{s}.json" for s in ("fern", "room", "trex")}
-VAL_REPORTS = {s: f"colourlevels3_val_{s}.json" for s in ("fern", "room", "trex")}
-SYNTHETIC_REPORT = "colourlevels3_synthetic.json"
+SCENE_REPORTS = {s: f"fold_test_{s}.json" for s in ("fern", "room", "trex")}
+VAL_REPORTS = {s: f"fold_val_{s}.json" for s in ("fern", "room", "trex")}
+SYNTHETIC_REPORT = "fold_synthetic.json"
 POSE_REPORTS = {
     "fern": "poses_e2e_fern_wide.json",
     "room": "poses_e2e_room_wide.json",
     "trex": "poses_e2e_trex_exif_wide.json",
 }
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
-PROFILE_REPORT = "profile_job_fern_cpu_colour_where.json"
+PROFILE_REPORT = "profile_job_fern_cpu_fold.json"
 PREVIEW_REPORT = "preview_quality_fern_half.json"
-TIMELINE_REPORT = "job_timeline_fern_cpu_colour_where.json"
+TIMELINE_REPORT = "job_timeline_fern_cpu_fold.json"
 BUILD_REPORT = "model_build_time_fern_fused.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
 SERVICE_REPORT = "service_cpu.json"
