@@ -487,9 +487,13 @@ class _TrainPhase:
 
         ctx, hb, layout = self.ctx, self.hb, self.layout
         expected = self._final_bake_s()
-        # While an MPI is left to bake the ETA says at least 0.1 s (a small scene's MPI bakes in
-        # less, which rounds to 0).
-        hb.set(status="baking", progress=0.0, eta_seconds=max(round(expected, 1), 0.1), detail="baking the MPIs")
+
+        def eta_while_baking(left_s: float) -> float:
+            """Seconds left, at least 0.1 while an MPI is left (a small scene's bakes in less,
+            which would round to 0)."""
+            return max(round(left_s, 1), 0.1)
+
+        hb.set(status="baking", progress=0.0, eta_seconds=eta_while_baking(expected), detail="baking the MPIs")
         hb.flush()
         hb.check()
         t0 = time.perf_counter()
@@ -497,7 +501,7 @@ class _TrainPhase:
         def on_progress(done: int, total: int) -> None:
             """After each MPI: the share done, and the time left at the pace so far."""
             left = (time.perf_counter() - t0) * (total - done) / done
-            hb.set(progress=done / total, eta_seconds=max(round(left, 1), 0.1) if done < total else 0.0)
+            hb.set(progress=done / total, eta_seconds=eta_while_baking(left) if done < total else 0.0)
 
         with ctx.storage.writing(layout.baked(), manifest=MANIFEST) as baked:
             bake(self.trainer.model, baked, on_progress=on_progress)

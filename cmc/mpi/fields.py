@@ -240,19 +240,20 @@ class PyramidPlaneField(MPIField):
         bool) only at the samples it marks, 0 elsewhere (those not sampled, without gradient)."""
         D = grid.shape[0]
         bounds = plane_group_bounds(D, len(self.base))  # plane k takes base k * G // D
+        residual = plane_sampling.fold_levels(list(self.colour_levels)) if self.colour_levels else None
         if plane_sampling.supported(grid, self.parameters()):  # the compiled CPU sampler
             groups = [i for i in range(len(self.base)) for _ in range(bounds[i], bounds[i + 1])]
             base = plane_sampling.sample_planes(grid, groups, [self.base], self.cfg.base_interpolation, where=where)
-            if not self.colour_levels:
+            if residual is None:
                 return base
-            residual = plane_sampling.fold_levels(list(self.colour_levels))
             return base + plane_sampling.sample_planes(grid, range(D), [residual], where=where)
-        logits = self._colour_torch(grid, bounds)
+        logits = self._colour_torch(grid, bounds, residual)
         return logits if where is None else torch.where(where[:, None], logits, torch.zeros_like(logits))
 
-    def _colour_torch(self, grid: torch.Tensor, bounds: list[int]) -> torch.Tensor:
+    def _colour_torch(self, grid: torch.Tensor, bounds: list[int], residual: torch.Tensor | None) -> torch.Tensor:
         """:meth:`_colour_logits` at every sample with ``grid_sample`` (any device;
-        :mod:`cmc.mpi.plane_sampling` computes the same on the CPU)."""
+        :mod:`cmc.mpi.plane_sampling` computes the same on the CPU); ``residual`` the folded
+        colour levels [D, 3, h, w], or None."""
         grid = grid[:, None]  # [D, 1, R, 2]
         base = torch.cat(
             [
@@ -267,9 +268,8 @@ class PyramidPlaneField(MPIField):
                 for i, (k0, k1) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))
             ]
         )
-        if not self.colour_levels:
+        if residual is None:
             return base
-        residual = plane_sampling.fold_levels(list(self.colour_levels))
         return base + F.grid_sample(residual, grid, align_corners=False).squeeze(2)
 
 
