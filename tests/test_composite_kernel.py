@@ -9,10 +9,10 @@ from cmc.mpi.rendering import composite, composite_torch, strong_samples
 
 
 def _rays(seed: int, R: int = 400, D: int = 9) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """rgb [R, D, 3] (a strided view, as a field returns it), alpha [R, D] with an opaque back
+    """rgb [R, D, 3] (a view of [D, 3, R], as a field returns it), alpha [R, D] with an opaque back
     plane, opaque planes mid-ray and rays with no alpha in front, depth [R, D]."""
     gen = torch.Generator().manual_seed(seed)
-    rgb = torch.rand(3, R, D, generator=gen).permute(1, 2, 0)
+    rgb = torch.rand(D, 3, R, generator=gen).permute(2, 0, 1)
     alpha = torch.rand(R, D, generator=gen)
     alpha[:, -1] = 1
     alpha[:20, 3] = 1
@@ -20,32 +20,38 @@ def _rays(seed: int, R: int = 400, D: int = 9) -> tuple[torch.Tensor, torch.Tens
     return rgb, alpha, torch.rand(R, D, generator=gen) * 5
 
 
-@pytest.mark.parametrize(("min_weight", "scale"), [(0.0, 1.0), (0.05, 1.0), (0.05, 0.1)])
+@pytest.mark.parametrize(("min_weight", "scale"), [(0.0, 1.0), (0.05, 1.0), (0.05, 0.1), (0.05, "per ray")])
 @pytest.mark.parametrize("outputs", ["all", "colour only"])
 def test_the_compiled_composite_is_its_torch_twin(outputs, min_weight, scale):
     """The same colour, depth, coverage and weights, and the same gradients of rgb and alpha
     (from all four outputs, or from the colour alone: autograd then passes no gradient for the
     others), up to float rounding; with a least weight for colour gradients, the same ones cut;
-    with a factor on the colours' gradients, the same factor."""
+    with a factor on the colours' gradients (one, or one per ray, some 0), the same factors. The
+    compiled path's gradients keep the inputs' memory layout."""
     rgb0, alpha0, depth = _rays(0)
     gen = torch.Generator().manual_seed(1)
     grads = [torch.randn(400, 3, generator=gen), torch.randn(400, generator=gen)]
     grads += [torch.randn(400, generator=gen), torch.randn(400, 9, generator=gen)]
-    results = []
+    factor = torch.rand(400, generator=gen) * (torch.rand(400, generator=gen) > 0.3) if scale == "per ray" else scale
+    results, layouts = [], []
     for fn in (composite_kernel.composite, composite_torch):
         rgb, alpha = rgb0.clone().requires_grad_(), alpha0.clone().requires_grad_()
-        out = fn(rgb, alpha, depth, min_weight, scale)
+        for t in (rgb, alpha):
+            t.register_hook(lambda g, t=t: layouts.append(g.stride() == t.stride()))
+        out = fn(rgb, alpha, depth, min_weight, factor)
         out = (out.rgb, out.depth, out.acc, out.weights) if fn is composite_torch else out
         used = out if outputs == "all" else out[:1]
         sum((o * g).sum() for o, g in zip(used, grads, strict=False)).backward()
         results.append([*(o.detach() for o in out), rgb.grad, alpha.grad])
     for mine, theirs in zip(*results, strict=True):
         torch.testing.assert_close(mine, theirs, rtol=0, atol=2e-6)
+    assert not rgb0.is_contiguous() and layouts[:2] == [True, True]
     assert results[0][5].abs().sum() > 0 and results[0][4].abs().sum() > 0
     torch.testing.assert_close(results[0][2][20:40], torch.ones(20))  # the opaque back plane
     faint = results[0][3] < min_weight
     assert torch.equal(results[0][4][faint], torch.zeros(int(faint.sum()), 3))
-    assert (results[0][4][results[0][3] >= max(min_weight, 1e-6)] != 0).all()
+    scaled = torch.as_tensor(factor).expand(400)[:, None] > 0
+    assert (results[0][4][(results[0][3] >= max(min_weight, 1e-6)) & scaled] != 0).all()
     if min_weight > 0:
         assert 0.2 < faint.float().mean() < 0.8  # the cut applies to a good share, not all
 

@@ -468,6 +468,31 @@ def test_color_grad_scales_the_gradients_to_colour_only() -> None:
         torch.testing.assert_close(alpha, alpha1)
 
 
+def test_groups_render_as_alone_and_one_without_colour_gradient_samples_no_colour() -> None:
+    """render_ray_groups with two cameras in one query renders each as it does alone; with
+    colour_grad_min_weight, a group whose colour factor is 0 (the unseen poses' without L_ac)
+    has no colour sampled (0.5 on every plane) and its depth, coverage and weights unchanged."""
+    field, frame = random_pyramid(8, torch.float32), make_frame()
+    cams = target_cameras()
+    groups = [
+        (torch.as_tensor(K, dtype=torch.float32), torch.as_tensor(P, dtype=torch.float32), target_uv(torch.float32))
+        for K, P in (cams["moved"], cams["reference"])
+    ]
+    with torch.no_grad():
+        alone = [render_ray_groups(field, frame, [g])[0] for g in groups]
+        together = render_ray_groups(field, frame, groups)
+        cut = render_ray_groups(field, frame, groups, color_grad=[1.0, 0.0], colour_grad_min_weight=1e-3)
+    for a, b in zip(alone, together, strict=True):
+        for x, y in ((a.rgb, b.rgb), (a.depth, b.depth), (a.acc, b.acc), (a.weights, b.weights)):
+            torch.testing.assert_close(x, y, rtol=0, atol=1e-6)
+    torch.testing.assert_close(cut[1].rgb, 0.5 * together[1].acc[:, None].expand(-1, 3), rtol=0, atol=1e-6)
+    assert float((cut[1].rgb - together[1].rgb).abs().max()) > 0.05
+    for a, b in ((together[1].depth, cut[1].depth), (together[1].acc, cut[1].acc)):
+        assert torch.equal(a, b)
+    moved = (cut[0].rgb - together[0].rgb).abs().amax(-1)
+    assert bool((moved <= 0.5 * (together[0].weights * (together[0].weights < 1e-3)).sum(-1) + 1e-6).all())
+
+
 @pytest.mark.parametrize("num_planes", [8, 7])
 def test_pyramid_base_groups_give_plane_k_the_base_k_times_g_over_d(num_planes):
     """With ``base_groups`` G, plane k's colour uses base k * G // D (also when G does not divide

@@ -9,8 +9,10 @@ The backward pass needs no division by ``1 - alpha`` (an opaque plane mid-ray is
 ``G_k`` the gradient reaching plane k's weight (directly, and through the colour, depth and
 accumulated alpha), the gradient of alpha_k is ``T_k (G_k - U_{k+1})``, where ``T_k`` is the
 transmittance before plane k and ``U_k = G_k alpha_k + (1 - alpha_k) U_{k+1}`` is the
-back-to-front composite of the G's behind it. Rays are split over threads; each ray's sums run
-in one thread, so the result does not depend on the thread count.
+back-to-front composite of the G's behind it. Rays are split over threads in tiles of 16, each
+tile walked plane by plane, so that colours and gradients laid out plane first ([D, 3, R], as
+the samplers return them) are read and written a cache line at a time; each ray's sums run in one
+thread, so the result does not depend on the thread count.
 """
 
 from __future__ import annotations
@@ -25,48 +27,65 @@ kernel_cache.prepare()
 _JIT = dict(nogil=True, cache=True, boundscheck=False, error_model="numpy")
 
 
+_TILE = 16  # rays walked together, plane by plane: one cache line of a [D, 3, R] colour row
+
+
 @numba.njit(parallel=True, **_JIT)
-def _forward(rgb, alpha, depth, out_rgb, out_depth, out_acc, weights):  # pragma: no cover - compiled
+def _forward(rgb, alpha, depth, out_rgb, out_depth, out_acc, weights, scratch):  # pragma: no cover - compiled
     R, D = alpha.shape
-    for r in numba.prange(R):
-        trans = np.float32(1)
-        c0 = c1 = c2 = z = np.float32(0)
+    for tile in numba.prange((R + _TILE - 1) // _TILE):
+        r0 = tile * _TILE
+        n = min(_TILE, R - r0)
+        trans, sums = scratch[tile, 0], scratch[tile, 1:]  # sums: colour, then depth
+        trans[:] = 1
+        sums[:] = 0
         for k in range(D):
-            w = alpha[r, k] * trans
-            weights[r, k] = w
-            c0 += w * rgb[r, k, 0]
-            c1 += w * rgb[r, k, 1]
-            c2 += w * rgb[r, k, 2]
-            z += w * depth[r, k]
-            trans *= np.float32(1) - alpha[r, k]
-        out_rgb[r, 0], out_rgb[r, 1], out_rgb[r, 2] = c0, c1, c2
-        out_depth[r] = z
-        out_acc[r] = np.float32(1) - trans
+            for j in range(n):
+                r = r0 + j
+                w = alpha[r, k] * trans[j]
+                weights[r, k] = w
+                sums[0, j] += w * rgb[r, k, 0]
+                sums[1, j] += w * rgb[r, k, 1]
+                sums[2, j] += w * rgb[r, k, 2]
+                sums[3, j] += w * depth[r, k]
+                trans[j] *= np.float32(1) - alpha[r, k]
+        for j in range(n):
+            r = r0 + j
+            out_rgb[r, 0], out_rgb[r, 1], out_rgb[r, 2] = sums[0, j], sums[1, j], sums[2, j]
+            out_depth[r] = sums[3, j]
+            out_acc[r] = np.float32(1) - trans[j]
 
 
 @numba.njit(parallel=True, **_JIT)
 def _backward(
-    rgb, alpha, depth, weights, g_rgb, g_depth, g_acc, g_w, min_w, scale, d_rgb, d_alpha
+    rgb, alpha, depth, weights, g_rgb, g_depth, g_acc, g_w, min_w, scale, d_rgb, d_alpha, scratch
 ):  # pragma: no cover - compiled
     R, D = alpha.shape
-    min_w, scale = np.float32(min_w), np.float32(scale)
-    for r in numba.prange(R):
-        a0, a1, a2, gz, ga = g_rgb[r, 0], g_rgb[r, 1], g_rgb[r, 2], g_depth[r], g_acc[r]
-        s0, s1, s2 = scale * a0, scale * a1, scale * a2  # the colours' share of the gradient
-        u = np.float32(0)  # U_{k+1}
+    min_w = np.float32(min_w)
+    for tile in numba.prange((R + _TILE - 1) // _TILE):
+        r0 = tile * _TILE
+        n = min(_TILE, R - r0)
+        u, trans = scratch[tile, 0], scratch[tile, 1]  # U_{k+1}; the transmittance
+        u[:] = 0
         for k in range(D - 1, -1, -1):
-            w = weights[r, k]
-            g = g_w[r, k] + a0 * rgb[r, k, 0] + a1 * rgb[r, k, 1] + a2 * rgb[r, k, 2] + gz * depth[r, k] + ga
-            if w >= min_w:
-                d_rgb[r, k, 0], d_rgb[r, k, 1], d_rgb[r, k, 2] = w * s0, w * s1, w * s2
-            else:
-                d_rgb[r, k, 0] = d_rgb[r, k, 1] = d_rgb[r, k, 2] = np.float32(0)
-            d_alpha[r, k] = g - u
-            u = g * alpha[r, k] + (np.float32(1) - alpha[r, k]) * u
-        trans = np.float32(1)
+            for j in range(n):
+                r = r0 + j
+                a0, a1, a2, gz, ga = g_rgb[r, 0], g_rgb[r, 1], g_rgb[r, 2], g_depth[r], g_acc[r]
+                g = g_w[r, k] + a0 * rgb[r, k, 0] + a1 * rgb[r, k, 1] + a2 * rgb[r, k, 2] + gz * depth[r, k] + ga
+                w = weights[r, k]
+                if w >= min_w:  # the colours' share of the gradient
+                    s = scale[r]
+                    d_rgb[r, k, 0], d_rgb[r, k, 1], d_rgb[r, k, 2] = w * (s * a0), w * (s * a1), w * (s * a2)
+                else:
+                    d_rgb[r, k, 0] = d_rgb[r, k, 1] = d_rgb[r, k, 2] = np.float32(0)
+                d_alpha[r, k] = g - u[j]
+                u[j] = g * alpha[r, k] + (np.float32(1) - alpha[r, k]) * u[j]
+        trans[:] = 1
         for k in range(D):
-            d_alpha[r, k] *= trans
-            trans *= np.float32(1) - alpha[r, k]
+            for j in range(n):
+                r = r0 + j
+                d_alpha[r, k] *= trans[j]
+                trans[j] *= np.float32(1) - alpha[r, k]
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -90,6 +109,11 @@ def strong_samples(alpha: torch.Tensor, min_w: float) -> torch.Tensor:
     return out
 
 
+def _scratch(R: int) -> np.ndarray:
+    """Per-ray working values of the kernels, five rows per tile of rays."""
+    return np.empty(((R + _TILE - 1) // _TILE, 5, _TILE), np.float32)
+
+
 def _array(t: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
     """The gradient ``t`` as an array, zeros where autograd passed none."""
     return np.zeros(shape, np.float32) if t is None else t.detach().numpy()
@@ -97,7 +121,7 @@ def _array(t: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, min_w: float, scale: float):  # type: ignore[override]
+    def forward(ctx, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, min_w: float, scale: np.ndarray):  # type: ignore[override]
         R, D = alpha.shape
         out_rgb, out_depth, out_acc, weights = torch.empty(R, 3), torch.empty(R), torch.empty(R), torch.empty(R, D)
         with kernel_cache.PARALLEL_LAUNCH:
@@ -109,6 +133,7 @@ class _Composite(torch.autograd.Function):
                 out_depth.numpy(),
                 out_acc.numpy(),
                 weights.numpy(),
+                _scratch(R),
             )
         ctx.save_for_backward(rgb, alpha, depth, weights)
         ctx.min_w, ctx.scale = min_w, scale
@@ -119,7 +144,9 @@ class _Composite(torch.autograd.Function):
     def backward(ctx, g_rgb, g_depth, g_acc, g_w):  # type: ignore[override]
         rgb, alpha, depth, weights = ctx.saved_tensors
         R, D = alpha.shape
-        d_rgb, d_alpha = torch.empty(R, D, 3), torch.empty(R, D)
+        # In the inputs' own memory layout (a field's colours are a view of its samplers' [D, 3,
+        # R]): the gradient then reaches the samplers without a copy.
+        d_rgb, d_alpha = torch.empty_like(rgb), torch.empty_like(alpha)
         with kernel_cache.PARALLEL_LAUNCH:
             _backward(
                 rgb.detach().numpy(),
@@ -134,6 +161,7 @@ class _Composite(torch.autograd.Function):
                 ctx.scale,
                 d_rgb.numpy(),
                 d_alpha.numpy(),
+                _scratch(R),
             )
         return d_rgb, d_alpha, None, None, None
 
@@ -151,16 +179,18 @@ def composite(
     alpha: torch.Tensor,
     depth: torch.Tensor,
     colour_grad_min_weight: float = 0.0,
-    colour_grad_scale: float = 1.0,
+    colour_grad_scale: float | torch.Tensor = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Front-to-back compositing of rgb [R, D, 3], alpha [R, D] and per-sample depth [R, D],
     nearest plane first -> colour [R, 3], depth [R], accumulated alpha [R] and the planes'
     weights [R, D]; differentiable in rgb and alpha, the gradient of a sample's colour times
-    ``colour_grad_scale``, and exactly 0 where its weight is below ``colour_grad_min_weight``.
+    ``colour_grad_scale`` (one factor, or one per ray: [R]), and exactly 0 where its weight is
+    below ``colour_grad_min_weight``. The gradients of rgb and alpha have their memory layout.
     Only where :func:`supported`."""
     if not supported(rgb, alpha, depth):
         raise ValueError("the compiled composite takes float32 CPU tensors, RGB, and depths without gradient")
-    return _Composite.apply(rgb, alpha, depth, colour_grad_min_weight, colour_grad_scale)
+    scale = np.broadcast_to(np.asarray(colour_grad_scale, np.float32), (len(alpha),))
+    return _Composite.apply(rgb, alpha, depth, colour_grad_min_weight, np.ascontiguousarray(scale))
 
 
 def warm_up() -> None:

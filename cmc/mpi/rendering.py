@@ -145,13 +145,14 @@ def composite(
     alpha: torch.Tensor,
     depth: torch.Tensor,
     colour_grad_min_weight: float = 0.0,
-    colour_grad_scale: float = 1.0,
+    colour_grad_scale: float | torch.Tensor = 1.0,
 ) -> RayOutput:
     """Front-to-back alpha compositing (paper Eq. 3.4, 3.5).
 
     Shape: rgb [R, D, 3] (any number of channels), alpha [R, D], depth [R, D] (per-sample depth),
     nearest plane first. The gradients that reach the colours are multiplied by
-    ``colour_grad_scale`` (the rendered values do not depend on it); a sample whose weight is
+    ``colour_grad_scale``, one factor or one per ray ([R]; the rendered values do not depend on
+    it); a sample whose weight is
     below ``colour_grad_min_weight`` passes none to its colour (its share of the ray's colour is
     too small to fit, and the compiled sampler skips the colour texels of such samples in the
     backward pass). On the CPU a compiled kernel (:mod:`cmc.mpi.composite_kernel`) computes it;
@@ -168,12 +169,14 @@ def composite_torch(
     alpha: torch.Tensor,
     depth: torch.Tensor,
     colour_grad_min_weight: float = 0.0,
-    colour_grad_scale: float = 1.0,
+    colour_grad_scale: float | torch.Tensor = 1.0,
 ) -> RayOutput:
     """:func:`composite` as torch ops (any device)."""
     w = _weights_torch(alpha)
-    if colour_grad_scale != 1.0 and rgb.requires_grad:
-        rgb = rgb.detach() + colour_grad_scale * (rgb - rgb.detach())
+    scale = torch.as_tensor(colour_grad_scale, dtype=rgb.dtype, device=rgb.device)
+    if rgb.requires_grad and bool((scale != 1).any()):
+        scale = scale[:, None, None] if scale.ndim else scale
+        rgb = rgb.detach() + scale * (rgb - rgb.detach())
     if colour_grad_min_weight > 0 and rgb.requires_grad:
         rgb = torch.where((w.detach() >= colour_grad_min_weight)[..., None], rgb, rgb.detach())
     return RayOutput((w[..., None] * rgb).sum(1), (w * depth).sum(1), w.sum(1), w)
@@ -223,7 +226,9 @@ def render_ray_groups(
         colour_grad_min_weight: samples weighing less in their ray pass no gradient to their
             colour (:func:`composite`), and the field need not compute their colour
             (``MPIField``'s ``colour_where``: such a sample's colour may read 0.5, which moves
-            its ray's colour by at most half the faint samples' summed weight).
+            its ray's colour by at most half the faint samples' summed weight). With it, a
+            group whose factor is 0 gets no colour computed at all (its colour reads 0.5
+            wherever a field honours ``colour_where``).
     Returns:
         one RayOutput per group.
     """
@@ -248,27 +253,27 @@ def render_ray_groups(
         gs.append(g.clamp(-1.5, 1.5))
         lams.append(lam)
         dirss.append(d_ref / d_ref.norm(dim=-1, keepdim=True))
+    sizes = [len(lam) for lam in lams]
+    inside = torch.cat(insides)
+    scales = [1.0] * len(groups) if color_grad is None else [float(s) for s in color_grad]
+    scale = torch.cat([torch.full((n,), s) for n, s in zip(sizes, scales, strict=True)])
     colour_where = None
     if colour_grad_min_weight > 0:
-        inside_all = torch.cat(insides)
 
         def colour_where(alpha: torch.Tensor) -> torch.Tensor:
-            return strong_samples(alpha.detach() * inside_all, colour_grad_min_weight)
+            strong = strong_samples(alpha.detach() * inside, colour_grad_min_weight)
+            return strong if min(scales) > 0 else strong & (scale > 0)[:, None]
 
     # [R, D, 2] as a view of the [D, R, 2] grid the explicit fields sample plane by plane.
     rgb, alpha = field(torch.cat(gs, 1).transpose(0, 1), frame.plane_z, torch.cat(dirss), colour_where)
-    # split, not slices: the backward of a slice fills a zero gradient of the whole batch per group
-    sizes = [len(lam) for lam in lams]
-    outs = []
-    for g, (rgb_g, alpha_g, inside, lam) in enumerate(
-        zip(rgb.split(sizes), alpha.split(sizes), insides, lams, strict=True)
-    ):
-        scale = 1.0 if color_grad is None else float(color_grad[g])
-        if scale == 0.0:  # no colour gradients: no backward pass through the colours at all
-            rgb_g = rgb_g.detach()
-        depth_g = torch.where(inside, lam, torch.zeros_like(lam))
-        outs.append(composite(rgb_g, alpha_g * inside, depth_g, colour_grad_min_weight, scale))
-    return outs
+    if max(scales) == 0:  # no colour gradients: no backward pass through the colours at all
+        rgb = rgb.detach()
+    lam = torch.cat(lams)
+    # All groups in one composite (its gradients keep the field's layout; split, not slices: the
+    # backward of a slice fills a zero gradient of the whole batch per group).
+    out = composite(rgb, alpha * inside, torch.where(inside, lam, torch.zeros_like(lam)), colour_grad_min_weight, scale)
+    parts = [out.rgb.split(sizes), out.depth.split(sizes), out.acc.split(sizes), out.weights.split(sizes)]
+    return [RayOutput(*p) for p in zip(*parts, strict=True)]
 
 
 @dataclass
