@@ -8,7 +8,6 @@ import os
 import re
 import shlex
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -17,7 +16,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from helpers import SHARED_DIR
+from helpers import SHARED_DIR, free_port
 from PIL import Image
 
 from cmc.geometry.cameras import camera_file_from_dict, match_frames
@@ -47,12 +46,6 @@ def walkthrough(**values: str) -> str:
     return script
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     """URL of ``cmc serve`` (the README's command) in a subprocess, with its own data folder."""
@@ -61,7 +54,7 @@ def server(tmp_path_factory):
             pytest.fail("jq is needed by the README walk-through (make jq installs it)")
         pytest.skip("jq is not installed")
     tmp = tmp_path_factory.mktemp("serve")
-    port = _free_port()
+    port = free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("CMC_")}  # no keys: open on localhost
     cmc = Path(sys.executable).with_name("cmc")
     log = open(tmp / "serve.log", "wb")  # noqa: SIM115 - closed below

@@ -33,7 +33,16 @@ import httpx
 import numpy as np
 import pytest
 import yaml
-from helpers import PG_ADMIN, REDIS_URL, S3_CREDENTIALS, new_bucket, render_body, synthetic_upload, throwaway_postgres
+from helpers import (
+    PG_ADMIN,
+    REDIS_URL,
+    S3_CREDENTIALS,
+    free_port,
+    new_bucket,
+    render_body,
+    synthetic_upload,
+    throwaway_postgres,
+)
 from PIL import Image
 
 from cmc.data.datasets import DEFAULT_LAYERS, render_layers
@@ -51,12 +60,6 @@ def _reachable(url: str, port: int) -> bool:
         return False
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class Deployment:
     """The API and workers as child processes sharing one environment."""
 
@@ -64,7 +67,7 @@ class Deployment:
         run = uuid.uuid4().hex[:8]
         self.tmp = tmp
         self.own_data_dirs = False  # True: CMC_DATA_DIR is tmp/<process name>, shared by none
-        self.port = _free_port()
+        self.port = free_port()
         self.env = {
             **os.environ,
             "PYTHONPATH": str(ROOT),
