@@ -468,14 +468,16 @@ def test_color_grad_scales_the_gradients_to_colour_only() -> None:
         torch.testing.assert_close(alpha, alpha1)
 
 
-def test_groups_render_as_alone_and_one_without_colour_gradient_samples_no_colour() -> None:
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_groups_render_as_alone_and_one_without_colour_gradient_samples_no_colour(dtype) -> None:
     """render_ray_groups with two cameras in one query renders each as it does alone; with
     colour_grad_min_weight, a group whose colour factor is 0 (the unseen poses' without L_ac)
-    has no colour sampled (0.5 on every plane) and its depth, coverage and weights unchanged."""
-    field, frame = random_pyramid(8, torch.float32), make_frame()
+    has no colour sampled (0.5 on every plane) and its depth, coverage and weights unchanged.
+    float32: the compiled kernels; float64: their torch twins (the GPU's path)."""
+    field, frame = random_pyramid(8, dtype), make_frame(dtype)
     cams = target_cameras()
     groups = [
-        (torch.as_tensor(K, dtype=torch.float32), torch.as_tensor(P, dtype=torch.float32), target_uv(torch.float32))
+        (torch.as_tensor(K, dtype=dtype), torch.as_tensor(P, dtype=dtype), target_uv(dtype))
         for K, P in (cams["moved"], cams["reference"])
     ]
     with torch.no_grad():

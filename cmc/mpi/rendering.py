@@ -152,12 +152,11 @@ def composite(
     Shape: rgb [R, D, 3] (any number of channels), alpha [R, D], depth [R, D] (per-sample depth),
     nearest plane first. The gradients that reach the colours are multiplied by
     ``colour_grad_scale``, one factor or one per ray ([R]; the rendered values do not depend on
-    it); a sample whose weight is
-    below ``colour_grad_min_weight`` passes none to its colour (its share of the ray's colour is
-    too small to fit, and the compiled sampler skips the colour texels of such samples in the
-    backward pass). On the CPU a compiled kernel (:mod:`cmc.mpi.composite_kernel`) computes it;
-    elsewhere (and for depths with a gradient, or other than 3 channels) :func:`composite_torch`,
-    its twin.
+    it); a sample whose weight is below ``colour_grad_min_weight`` passes none to its colour (its
+    share of the ray's colour is too small to fit, and the compiled sampler skips the colour
+    texels of such samples in the backward pass). On the CPU a compiled kernel
+    (:mod:`cmc.mpi.composite_kernel`) computes it; elsewhere (and for depths with a gradient, or
+    other than 3 channels) :func:`composite_torch`, its twin.
     """
     if composite_kernel.supported(rgb, alpha, depth):
         return RayOutput(*composite_kernel.composite(rgb, alpha, depth, colour_grad_min_weight, colour_grad_scale))
@@ -256,7 +255,7 @@ def render_ray_groups(
     sizes = [len(lam) for lam in lams]
     inside = torch.cat(insides)
     scales = [1.0] * len(groups) if color_grad is None else [float(s) for s in color_grad]
-    scale = torch.cat([torch.full((n,), s) for n, s in zip(sizes, scales, strict=True)])
+    scale = torch.cat([torch.full((n,), s, device=z.device) for n, s in zip(sizes, scales, strict=True)])
     colour_where = None
     if colour_grad_min_weight > 0:
 
