@@ -1,7 +1,7 @@
 """What the service benchmarks share: a free port, waiting for a started server, the report.
 
 Imported by the bench/ scripts that start the API (run as ``python bench/NAME.py``, so this
-folder is on ``sys.path``).
+folder is on ``sys.path``); tests/helpers.py takes :func:`free_port` from here too.
 """
 
 from __future__ import annotations

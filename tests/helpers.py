@@ -3,12 +3,11 @@ shared data lies (``$CMC_SHARED_DIR``, else ``../shared`` beside the checkout)."
 
 from __future__ import annotations
 
+import importlib.util
 import io
 import json
 import math
 import os
-import random
-import socket
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -131,25 +130,17 @@ def browser_unavailable(message: str):
     pytest.skip(message)
 
 
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nothing listens on now, drawn below the kernel's range of
-    ephemeral ports (``/proc/sys/net/ipv4/ip_local_port_range``; 32768 and up by default): a port
-    from that range can be taken by any outgoing connection (to Redis, PostgreSQL, S3) between
-    this check and the bind of the server it is for."""
-    try:
-        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        low = 32768
-    first = max(1024, low - 12000)
-    for _ in range(200):
-        port = random.randrange(first, low)
-        with socket.socket() as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-            return port
-    raise RuntimeError(f"no free port in {first}-{low - 1}")
+def _bench_servers():
+    """bench/servers.py, the benchmarks' server helpers (a script folder, not a package)."""
+    spec = importlib.util.spec_from_file_location(
+        "bench_servers", Path(__file__).resolve().parents[1] / "bench/servers.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+free_port = _bench_servers().free_port  # a free port below the ephemeral range, as the benchmarks take one
 
 
 def new_bucket(endpoint: str) -> str:
