@@ -33,7 +33,7 @@ import torch
 from cmc.config import preset_config
 from cmc.data.datasets import load_llff
 from cmc.eval.bench import report_header
-from cmc.eval.metrics import LPIPS, psnr, ssim
+from cmc.eval.metrics import LPIPS, _gaussian_taps, psnr, ssim
 from cmc.method.training import Trainer
 from cmc.mpi.rendering import RayOutput, blend_selection, render_texture_image
 from cmc.serving.baking import MANIFEST, BakedScene, bake
@@ -99,11 +99,9 @@ def consensus(
 
 
 def _gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
-    """x [C, H, W] blurred by a Gaussian of ``sigma`` pixels (zero outside, separable)."""
-    radius = max(1, round(3 * sigma))
-    t = torch.arange(-radius, radius + 1, dtype=torch.float32)
-    k = torch.exp(-0.5 * (t / sigma) ** 2)
-    k = k / k.sum()
+    """x [C, H, W] blurred by a Gaussian of ``sigma`` pixels (radius 3 sigma, zero outside, separable)."""
+    k = _gaussian_taps(sigma, 3.0).float()
+    radius = len(k) // 2
     x = torch.nn.functional.conv2d(x[:, None], k.view(1, 1, 1, -1), padding=(0, radius))
     return torch.nn.functional.conv2d(x, k.view(1, 1, -1, 1), padding=(radius, 0))[:, 0]
 

@@ -172,8 +172,8 @@ def composite_torch(
 ) -> RayOutput:
     """:func:`composite` as torch ops (any device)."""
     w = _weights_torch(alpha)
-    scale = torch.as_tensor(colour_grad_scale, dtype=rgb.dtype, device=rgb.device)
-    if rgb.requires_grad and bool((scale != 1).any()):
+    if rgb.requires_grad and (torch.is_tensor(colour_grad_scale) or colour_grad_scale != 1.0):
+        scale = torch.as_tensor(colour_grad_scale, dtype=rgb.dtype, device=rgb.device)
         scale = scale[:, None, None] if scale.ndim else scale
         rgb = rgb.detach() + scale * (rgb - rgb.detach())
     if colour_grad_min_weight > 0 and rgb.requires_grad:
