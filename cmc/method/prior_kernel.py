@@ -8,7 +8,9 @@ their backward passes.
 the entropy's prefix sums in float64 (alpha recovered as ``w_k / T_k`` is ill-conditioned where
 ``T_k`` is small): the same values up to rounding (``tests/test_prior_kernel.py``). Rays are
 split over threads; each ray's sums run in one thread, so the result does not depend on the
-thread count. The entropy's forward pass keeps each plane's H and H' for the backward pass.
+thread count. The entropy's forward pass runs in three passes (alpha and the transmittance
+compiled, their logarithms in torch, the sums compiled) and keeps each plane's H and H' for the
+backward pass.
 
 Distortion, per ray: ``L = sum_{k,l} w_k w_l |s_k - s_l| + delta / 3 sum_k w_k^2`` with
 ``s_k = k delta``; ``dL/dw_j = 2 sum_l w_l |s_j - s_l| + 2 delta / 3 w_j``, the sum split at j
@@ -81,22 +83,35 @@ def _transmittance(prefix):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, **_JIT)
-def _entropy_forward(w, out, h, dh):  # pragma: no cover - compiled
-    """Per ray the prior, and per plane the entropy h and its derivative dh (float32, kept for
-    the backward pass; 0 where alpha's clamp passes no gradient)."""
+def _entropy_alpha(w, a, t, passes):  # pragma: no cover - compiled
+    """Per plane but the back one, the clamped alpha a, the transmittance t (float32) and whether
+    alpha's clamp passes a gradient, from the float64 prefix sums of each ray's weights."""
     R, D = w.shape
     lo, hi = np.float32(_A_MIN), np.float32(1 - _A_MIN)
     for r in numba.prange(R):
-        prefix = total = 0.0
+        prefix = 0.0
         for k in range(D - 1):
-            t, in_t, t_c = _transmittance(prefix)
-            a = np.float32(w[r, k] / t_c)
-            ac = min(max(a, lo), hi)
-            hk = -(ac * np.log(ac) + (np.float32(1) - ac) * np.log1p(-ac))
-            h[r, k] = hk
-            dh[r, k] = np.log1p(-ac) - np.log(ac) if a >= lo and a <= hi else np.float32(0)
-            total += t * hk
+            tk, in_t, t_c = _transmittance(prefix)
+            ak = np.float32(w[r, k] / t_c)
+            a[r, k] = min(max(ak, lo), hi)
+            t[r, k] = tk
+            passes[r, k] = ak >= lo and ak <= hi
             prefix += w[r, k]
+
+
+@numba.njit(parallel=True, **_JIT)
+def _entropy_sum(a, t, passes, log_a, log_1ma, out, h, dh):  # pragma: no cover - compiled
+    """Per ray the prior (summed in float64), and per plane the entropy h and its derivative dh
+    (kept for the backward pass; 0 where alpha's clamp passes no gradient), from the logarithms
+    of a and 1 - a."""
+    R, D1 = a.shape
+    for r in numba.prange(R):
+        total = 0.0
+        for k in range(D1):
+            hk = -(a[r, k] * log_a[r, k] + (np.float32(1) - a[r, k]) * log_1ma[r, k])
+            h[r, k] = hk
+            dh[r, k] = log_1ma[r, k] - log_a[r, k] if passes[r, k] else np.float32(0)
+            total += t[r, k] * hk
         out[r] = total
 
 
@@ -142,9 +157,17 @@ class _Distortion(torch.autograd.Function):
 class _AlphaEntropy(torch.autograd.Function):
     @staticmethod
     def forward(ctx, w: torch.Tensor):  # type: ignore[override]
-        out, h, dh = torch.empty(w.shape[0]), torch.empty_like(w), torch.empty_like(w)
+        R, D = w.shape
+        a, t, passes = torch.empty(R, D - 1), torch.empty(R, D - 1), torch.empty(R, D - 1, dtype=torch.bool)
+        out, h, dh = torch.empty(R), torch.empty(R, D - 1), torch.empty(R, D - 1)
         with kernel_cache.PARALLEL_LAUNCH:
-            _entropy_forward(w.detach().numpy(), out.numpy(), h.numpy(), dh.numpy())
+            _entropy_alpha(w.detach().numpy(), a.numpy(), t.numpy(), passes.numpy())
+        # torch's logarithms are vectorised (the compiled loop's scalar ones were most of its time)
+        log_a, log_1ma = torch.log(a), torch.log1p(-a)
+        with kernel_cache.PARALLEL_LAUNCH:
+            _entropy_sum(
+                a.numpy(), t.numpy(), passes.numpy(), log_a.numpy(), log_1ma.numpy(), out.numpy(), h.numpy(), dh.numpy()
+            )
         ctx.save_for_backward(w, h, dh)
         return out
 
