@@ -91,7 +91,7 @@ def _entropy_alpha(w, a, t, passes):  # pragma: no cover - compiled
     for r in numba.prange(R):
         prefix = 0.0
         for k in range(D - 1):
-            tk, in_t, t_c = _transmittance(prefix)
+            tk, _, t_c = _transmittance(prefix)
             ak = np.float32(w[r, k] / t_c)
             a[r, k] = min(max(ak, lo), hi)
             t[r, k] = tk
@@ -162,7 +162,7 @@ class _AlphaEntropy(torch.autograd.Function):
         out, h, dh = torch.empty(R), torch.empty(R, D - 1), torch.empty(R, D - 1)
         with kernel_cache.PARALLEL_LAUNCH:
             _entropy_alpha(w.detach().numpy(), a.numpy(), t.numpy(), passes.numpy())
-        # torch's logarithms are vectorised (the compiled loop's scalar ones were most of its time)
+        # log a and log(1 - a) in torch, vectorised (numba's are scalar without Intel's SVML)
         log_a, log_1ma = torch.log(a), torch.log1p(-a)
         with kernel_cache.PARALLEL_LAUNCH:
             _entropy_sum(
