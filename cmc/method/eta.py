@@ -13,13 +13,10 @@ Stages that have not run yet are estimated from a reference run until they measu
 speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2-core CPU.
 
 * :data:`REFERENCE_POSES_S`: structure from motion, 12.7 s (median of 3, bench/reports/history/poses_fern.md).
-* :data:`REFERENCE_STEP_S`: a training step, 0.55 s in ``cmc serve``: 0.72 s while every MPI
-  rendered every input ray (bench/reports/history/job_timeline_fern_cpu.json: the train phase of
-  a 300-step job took 159 s more than that of an 80-step one, with 4096 rays a view; with 6144,
-  0.74 s on the faster machine of bench/reports/history/job_timeline_fern_cpu_rays6144.json),
-  times 0.76, what rendering half of the other photos' rays (``cross_view_rays=0.5``) made of a
-  step (:data:`CROSS_VIEW_STEP_RATIO`). A GPU trains much faster: until training has run a step,
-  a job's estimate is pessimistic there.
+* :data:`REFERENCE_STEP_S`: a training step, 0.42 s in ``cmc serve``: the mean step of three
+  300-step jobs (bench/reports/current/job_timeline_fern_cpu_layout{1,2,3}.json, 2026-12-02:
+  125.1-126.6 s from the preview to the final bake). A GPU trains much faster: until training
+  has run a step, a job's estimate is pessimistic there.
 * The model build (the plane sweeps), in training steps (:func:`build_steps`), and baking
   (:func:`bake_steps`): modelled from the same kind of jobs. A job that bakes a preview measures its
   own bake speed there (:func:`final_bake_s`), and until it has trained a step it takes its step time
@@ -37,11 +34,7 @@ if TYPE_CHECKING:
     from cmc.config import TrainConfig
 
 REFERENCE_POSES_S = 12.7
-# A step of the fast preset over one with every MPI rendering every input ray, on fern's 2-core
-# CPU (bench/reports/current/train_step_cross_view_rays_cpu.json: reconstruction-only 0.73, full
-# loss 0.77, 0.76 over a job's steps): the reference's step and build below were measured before.
-CROSS_VIEW_STEP_RATIO = 0.76
-REFERENCE_STEP_S = round(0.72 * CROSS_VIEW_STEP_RATIO, 2)
+REFERENCE_STEP_S = 0.42
 # TrainConfig.steps of each preset and the input rays each MPI of the fast preset renders a step
 # from three photos (input_rays_per_mpi; cmc.config.preset_config needs torch to import, the
 # pose-estimation worker does not load it). tests/test_eta.py checks that they agree.
@@ -75,24 +68,22 @@ def bake_steps(width: int, height: int, margin: float, rays_per_mpi: float) -> f
 
     Per plane of every MPI the bake evaluates the field once at each of ``margin^2 * W * H``
     texels and writes it; a step evaluates it at ``rays_per_mpi`` samples
-    (:func:`input_rays_per_mpi`), forward and backward. Fern at 504x378 with 6144 rays a view,
-    each rendered by all three MPIs (18432 a step and MPI): about 7 steps (the final
-    bake 11.8-12.3 s in ``cmc serve``, publishing included, against the jobs' mean steps of 1.7-2.0
-    s, bench/reports/history/job_timeline_fern_cpu_bake_thread.json; 8.9 reconstruction-only
-    steps of a process doing nothing else, bench/reports/current/bake_time_cpu.json).
+    (:func:`input_rays_per_mpi`), forward and backward. Fern at 504x378 (each MPI rendering
+    12288 input rays a step): about 15.7 steps (the final bake 6.1-7.2 s in ``cmc serve``,
+    publishing included, against the jobs' mean steps of 0.42 s, the reports of
+    :data:`REFERENCE_STEP_S`).
     """
-    return margin**2 * width * height / (2.1 * rays_per_mpi)
+    return margin**2 * width * height / (1.42 * rays_per_mpi)
 
 
 def build_steps(width: int, height: int) -> float:
     """The model build's cost (the plane sweeps, with loading the photos and the kernels) in
     training steps (a model fitted to one kind of job): fern at 504x378, ``fast``, in ``cmc serve``
-    on 2-core CPUs, ten jobs on three machines of 2026-11-28 (builds of 6.6-15.2 s against the
-    jobs' mean steps of 0.79-2.03 s): 7.3-10.3 steps, 8.5 in the middle (bench/job_timeline.md,
-    last section), steps then of every MPI rendering every input ray: 8.5 / 0.76 of today's
-    (:data:`CROSS_VIEW_STEP_RATIO`); in proportion to the photos' pixels up to that size, no more
-    above it (the sweep's grid is capped: ``SweepConfig.max_texels``)."""
-    return 8.5 / CROSS_VIEW_STEP_RATIO * min(1.0, width * height / (504 * 378))
+    on the 2-core CPU, the three jobs of :data:`REFERENCE_STEP_S` (builds of 8.3-8.7 s against
+    their mean steps of 0.417-0.422 s): 19.7-20.9 steps, 20.5 in the middle; in proportion to
+    the photos' pixels up to that size, no more above it (the sweep's grid is capped:
+    ``SweepConfig.max_texels``)."""
+    return 20.5 * min(1.0, width * height / (504 * 378))
 
 
 def step_s_from_build(build_s: float, width: int, height: int) -> float:
