@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -117,6 +118,28 @@ def test_fit_reports_the_phase_aware_estimate(monkeypatch) -> None:
     assert abs(seen[10] - truth[10]) <= 0.05 * truth[10] and abs(naive - truth[10]) > 0.2 * truth[10]
     assert seen[50] == pytest.approx(truth[50])  # in the full phase: its own measured time
     assert seen[100] == 0.0
+
+
+def test_a_jobs_eta_keeps_the_builds_pace_until_its_second_step() -> None:
+    """worker.pipeline's train phase: the first step an attempt trains pays one-off costs (3 s here,
+    against the 1 s the build's pace predicts); the ETA it writes then keeps the predicted step time
+    for the steps to come (not 99 x 3 s), and from the second step on the measured one."""
+    from cmc.method.training import Progress
+    from worker.pipeline import _TrainPhase
+
+    writes: list[float] = []
+    phase = _TrainPhase.__new__(_TrainPhase)  # only what _on_progress reads
+    phase.hb = SimpleNamespace(set=lambda **fields: writes.append(fields["eta_seconds"]))
+    phase.resumed_from, phase.preview_s, phase.preview_step, phase.stats = 0, 0.0, None, {}
+    phase.step_s, phase.bake_cost, phase.bake_s = 1.0, 7.0, 5.0  # the build's pace; the preview's bake
+    phase.preview_cost = 0.25 * phase.bake_cost
+    eta = TrainingETA(100, first_full=30, full_cost_ratio=1.0)
+    eta.record(0, 3.0)
+    phase._on_progress(Progress(1, 100, {}, 3.0, eta.remaining_s(1)))
+    assert writes[-1] == pytest.approx(99 * 1.0 + 5.0)
+    eta.record(1, 1.2)
+    phase._on_progress(Progress(2, 100, {}, 4.2, eta.remaining_s(2)))
+    assert writes[-1] == pytest.approx(98 * 1.2 + 5.0)
 
 
 def test_cost_model_follows_the_config() -> None:

@@ -450,8 +450,13 @@ class _TrainPhase:
         hb.flush()
 
     def _on_progress(self, p: Progress) -> None:
-        self.step_s = (p.elapsed_s - self.preview_s) / (p.step - self.resumed_from)
-        self.hb.set(progress=p.step / p.total, eta_seconds=round(p.eta_s + self._bakes_s(), 1))
+        trained = p.step - self.resumed_from
+        if trained > 1:
+            self.step_s = (p.elapsed_s - self.preview_s) / trained
+            train_s = p.eta_s
+        else:  # the attempt's first step pays one-off costs: the steps to come keep the build's pace
+            train_s = (p.total - p.step) * self.step_s
+        self.hb.set(progress=p.step / p.total, eta_seconds=round(train_s + self._bakes_s(), 1))
         if self._preview_pending() and p.step >= self.preview_step:  # type: ignore[operator]
             self._bake_preview()
 
