@@ -406,7 +406,7 @@ class _TrainPhase:
             return trainer
 
         self.trainer = _resume(self.ctx, self.rec, make(), make)
-        self.step_s = step_s_from_build(build_s, *size)  # until this worker trains a step
+        self.step_s = step_s_from_build(build_s, *size)  # until this attempt trains a second step
         self.resumed_from = resumed = self.trainer.step
         self.stats["train"] = {
             "steps": cfg.steps,

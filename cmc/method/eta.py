@@ -19,9 +19,10 @@ speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2
   has run a step, a job's estimate is pessimistic there.
 * The model build (the plane sweeps), in training steps (:func:`build_steps`), and baking
   (:func:`bake_steps`): modelled from the same kind of jobs. A job that bakes a preview measures its
-  own bake speed there (:func:`final_bake_s`), and until it has trained a step it takes its step time
-  from its own model build's pace (:func:`step_s_from_build`; ``worker.pipeline``): a slower or
-  faster CPU than the reference shows in the build first.
+  own bake speed there (:func:`final_bake_s`), and until it has trained a second step (the first
+  pays one-off costs) it takes its step time from its own model build's pace
+  (:func:`step_s_from_build`; ``worker.pipeline``): a slower or faster CPU than the reference
+  shows in the build first.
 """
 
 from __future__ import annotations
