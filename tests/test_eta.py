@@ -132,7 +132,7 @@ def test_a_jobs_eta_keeps_the_builds_pace_until_its_second_step() -> None:
     phase.hb = SimpleNamespace(set=lambda **fields: writes.append(fields["eta_seconds"]))
     phase.resumed_from, phase.preview_s, phase.preview_step, phase.stats = 0, 0.0, None, {}
     phase.step_s, phase.bake_cost, phase.bake_s = 1.0, 7.0, 5.0  # the build's pace; the preview's bake
-    phase.preview_cost = 0.25 * phase.bake_cost
+    phase.preview_cost, phase.build_cost = 0.25 * phase.bake_cost, 20.5
     eta = TrainingETA(100, first_full=30, full_cost_ratio=1.0)
     eta.record(0, 3.0)
     phase._on_progress(Progress(1, 100, {}, 3.0, eta.remaining_s(1)))

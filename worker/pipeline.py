@@ -453,10 +453,10 @@ class _TrainPhase:
         trained = p.step - self.resumed_from
         if trained > 1:
             self.step_s = (p.elapsed_s - self.preview_s) / trained
-            train_s = p.eta_s
+            eta = round(p.eta_s + self._bakes_s(), 1)
         else:  # the attempt's first step pays one-off costs: the steps to come keep the build's pace
-            train_s = (p.total - p.step) * self.step_s
-        self.hb.set(progress=p.step / p.total, eta_seconds=round(train_s + self._bakes_s(), 1))
+            eta = self._eta(p.total - p.step)
+        self.hb.set(progress=p.step / p.total, eta_seconds=eta)
         if self._preview_pending() and p.step >= self.preview_step:  # type: ignore[operator]
             self._bake_preview()
 
