@@ -32,7 +32,7 @@ import tempfile
 from cmc.serving.baking import bake
 out = {"step_" + phase: s for phase, s in out.items()}
 repeats, preview = int(sys.argv[4]), float(sys.argv[5])
-trainer.model.load_state_dict(torch.load(state))  # bake the trained model, not the steps' changes
+trainer.model.load_state_dict(state)  # STEP_TIMES loaded it: bake the trained model, not the steps' changes
 for name, scale in (("bake_full", 1.0), ("bake_preview", preview)):
     times = []
     for _ in range(repeats):

@@ -226,7 +226,8 @@ class PyramidPlaneField(MPIField):
         grid = g.reshape(1, -1, 2).expand(len(plane_z), -1, 2).contiguous()
         alpha = self._alpha_logits(grid).sigmoid_()
         alpha[-1] = 1.0  # the back plane opaque
-        return torch.cat([self._colour_logits(grid, None).sigmoid_(), alpha[:, None]], 1).reshape(-1, 4, h, w)
+        colour = self._colour_logits(grid, None, same_points=True)
+        return torch.cat([colour.sigmoid_(), alpha[:, None]], 1).reshape(-1, 4, h, w)
 
     def _alpha_logits(self, grid: torch.Tensor) -> torch.Tensor:
         """Alpha logits [D, R] at grid [D, R, 2]."""
@@ -235,15 +236,23 @@ class PyramidPlaneField(MPIField):
             return plane_sampling.sample_planes(grid, range(len(grid)), [alpha])[:, 0]
         return F.grid_sample(alpha, grid[:, None], align_corners=False)[:, 0, 0]
 
-    def _colour_logits(self, grid: torch.Tensor, where: torch.Tensor | None) -> torch.Tensor:
+    def _colour_logits(
+        self, grid: torch.Tensor, where: torch.Tensor | None, same_points: bool = False
+    ) -> torch.Tensor:
         """Colour logits [D, 3, R] (base plus levels) at grid [D, R, 2]; with ``where`` ([D, R]
-        bool) only at the samples it marks, 0 elsewhere (those not sampled, without gradient)."""
-        D = grid.shape[0]
-        bounds = plane_group_bounds(D, len(self.base))  # plane k takes base k * G // D
+        bool) only at the samples it marks, 0 elsewhere (those not sampled, without gradient).
+        ``same_points``: every plane's row of ``grid`` is the same (a texel grid), so on the CPU
+        each group's base colour is sampled once for all its planes (the same values)."""
+        D, G = grid.shape[0], len(self.base)
+        bounds = plane_group_bounds(D, G)  # plane k takes base k * G // D
         residual = plane_sampling.fold_levels(list(self.colour_levels)) if self.colour_levels else None
         if plane_sampling.supported(grid, self.parameters()):  # the compiled CPU sampler
-            groups = [i for i in range(len(self.base)) for _ in range(bounds[i], bounds[i + 1])]
-            base = plane_sampling.sample_planes(grid, groups, [self.base], self.cfg.base_interpolation, where=where)
+            groups = [i for i in range(G) for _ in range(bounds[i], bounds[i + 1])]
+            if same_points and where is None:
+                base = plane_sampling.sample_planes(grid[:G], range(G), [self.base], self.cfg.base_interpolation)
+                base = base[groups]
+            else:
+                base = plane_sampling.sample_planes(grid, groups, [self.base], self.cfg.base_interpolation, where=where)
             if residual is None:
                 return base
             return base + plane_sampling.sample_planes(grid, range(D), [residual], where=where)
