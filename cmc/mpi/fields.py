@@ -236,9 +236,7 @@ class PyramidPlaneField(MPIField):
             return plane_sampling.sample_planes(grid, range(len(grid)), [alpha])[:, 0]
         return F.grid_sample(alpha, grid[:, None], align_corners=False)[:, 0, 0]
 
-    def _colour_logits(
-        self, grid: torch.Tensor, where: torch.Tensor | None, same_points: bool = False
-    ) -> torch.Tensor:
+    def _colour_logits(self, grid: torch.Tensor, where: torch.Tensor | None, same_points: bool = False) -> torch.Tensor:
         """Colour logits [D, 3, R] (base plus levels) at grid [D, R, 2]; with ``where`` ([D, R]
         bool) only at the samples it marks, 0 elsewhere (those not sampled, without gradient).
         ``same_points``: every plane's row of ``grid`` is the same (a texel grid), so on the CPU
