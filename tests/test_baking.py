@@ -153,6 +153,16 @@ def test_missing_or_foreign_folders_are_refused(tmp_path):
         BakedScene.load(tmp_path)
 
 
+def test_an_atlas_of_the_wrong_size_is_refused(trained, tmp_path):
+    """The atlases decode in threads: an error in one reaches the caller, naming the atlas."""
+    _, model = trained
+    out = bake(model, tmp_path / "b")
+    name = json.loads((out / "mpi.json").read_text())["mpis"][1]["atlas"]
+    Image.new("RGBA", (8, 8)).save(out / name)
+    with pytest.raises(BakedFormatError, match=f"{name} is 8x8, expected"):
+        BakedScene.load(out)
+
+
 def test_merged_planes_are_exact_at_the_reference_view(trained, tmp_path):
     """Merging adjacent planes composites them in the reference camera: its render is unchanged
     (up to 8-bit storage), there are half as many planes, and depths stay in range."""

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -268,8 +269,10 @@ class BakedScene:
                 f"{folder} holds {m.get('format')} v{m.get('version')}, expected {FORMAT} v{VERSION}"
             )
         packed = PackedTextures.allocate([(len(e["depths"]), *e["tile"]) for e in m["mpis"]])
-        frames = []
-        for i, e in enumerate(m["mpis"]):
+
+        def read_atlas(i: int) -> None:
+            """Decode MPI i's atlas into ``packed`` (each MPI fills its own part of it)."""
+            e = m["mpis"][i]
             (h, w), (rows, cols) = e["tile"], e["grid"]
             name = Path(e["atlas"]).name  # never follow paths out of the folder
             with Image.open(folder / name) as im:
@@ -281,10 +284,15 @@ class BakedScene:
             del atlas
             tex[-1, ..., 3] = 255  # the back plane is opaque (cmc.mpi.fields)
             packed.fill(i, tex)
-            t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device)  # noqa: E731
-            frames.append(
-                MPIFrame(t(e["K"]), t(e["world_from_cam"]), t(e["depths"]), m["width"], m["height"], entry_margin(e))
-            )
+
+        # The atlases decode in threads (Pillow's PNG decoder releases the GIL).
+        with ThreadPoolExecutor(min(len(m["mpis"]), os.cpu_count() or 1)) as pool:
+            list(pool.map(read_atlas, range(len(m["mpis"]))))
+        t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device)  # noqa: E731
+        frames = [
+            MPIFrame(t(e["K"]), t(e["world_from_cam"]), t(e["depths"]), m["width"], m["height"], entry_margin(e))
+            for e in m["mpis"]
+        ]
         interpolation = m.get("colour_interpolation", "bilinear")  # absent from bakes before it existed
         if interpolation not in INTERPOLATIONS:
             raise BakedFormatError(f"{folder / MANIFEST}: unknown colour_interpolation {interpolation!r}")
