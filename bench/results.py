@@ -311,7 +311,9 @@ def service() -> list[str]:
             "## Deployment: docker-compose.yml's stack started from its images",
             "",
             f"`{d['command']}` ({d['date']}, {d['host']}): {passed} of {len(d['checks'])} checks passed; a",
-            f"20-step job {m['job_seconds']:.0f} s ({stages}); first render {m['render_ms']['first']} ms, then",
+            f"{d['settings']['short_job']['steps']}-step job at {d['settings']['short_job']['resolution']} px"
+            f" {m['job_seconds']:.0f} s ({stages}); first render {m['render_ms']['first']} ms (torch imported and"
+            " the scene loaded from the bucket), then",
             f"{m['render_ms']['loaded_median']} ms (median); peak memory of the CPU worker",
             f"{peak['worker-cpu']:.0f} MiB, the API {peak['api']:.0f} MiB.",
         ]
