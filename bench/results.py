@@ -265,7 +265,7 @@ def speed() -> list[str]:
         out += [
             "",
             "Seconds depend on the day's machine: jobs of the same code were ready after 138-164 s on",
-            "the slower 2-core machine of 2026-12-02's first session (`job_timeline.md`).",
+            "the slower 2-core machine of 2026-12-02's earlier sessions (`job_timeline.md`).",
         ]
     return out
 
