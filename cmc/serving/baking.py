@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -255,7 +254,7 @@ class BakedScene:
 
     @staticmethod
     def load(folder: str | Path, device: str | torch.device = "cpu") -> BakedScene:
-        from cmc.serving.texture_kernel import PackedTextures  # numba, imported when a scene is loaded
+        from cmc.serving.texture_kernel import PackedTextures, default_threads  # numba, imported when a scene is loaded
 
         folder = Path(folder)
         try:
@@ -286,7 +285,7 @@ class BakedScene:
             packed.fill(i, tex)
 
         # The atlases decode in threads (Pillow's PNG decoder releases the GIL).
-        with ThreadPoolExecutor(min(len(m["mpis"]), os.cpu_count() or 1)) as pool:
+        with ThreadPoolExecutor(min(len(m["mpis"]), default_threads())) as pool:
             list(pool.map(read_atlas, range(len(m["mpis"]))))
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device)  # noqa: E731
         frames = [
