@@ -32,7 +32,7 @@ POSE_REPORTS = {
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 PROFILE_REPORT = "profile_job_fern_cpu_a245170.json"
 PREVIEW_REPORT = "preview_quality_fern_half.json"
-TIMELINE_REPORT = "job_timeline_fern_cpu_a245170.json"
+TIMELINE_REPORT = "job_timeline_fern_cpu_650689a.json"
 BUILD_REPORT = "model_build_time_fern_fused.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
 SERVICE_REPORT = "service_cpu.json"
@@ -264,8 +264,9 @@ def speed() -> list[str]:
             out.append(f"| {r['steps']} | {r['seconds_to_preview']} | {r['seconds_to_ready']} | {share} |")
         out += [
             "",
-            "Seconds depend on the day's machine: jobs of the same code were ready after 138-164 s on",
-            "the slower 2-core machine of 2026-12-02's earlier sessions (`job_timeline.md`).",
+            "Seconds depend on the day's machine: jobs of the same code were ready after 104-112 s on",
+            "2026-12-02's third session's machine and after 138-164 s on the slower one of its first two",
+            "(`job_timeline.md`).",
         ]
     return out
 
