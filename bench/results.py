@@ -264,7 +264,7 @@ def speed() -> list[str]:
             out.append(f"| {r['steps']} | {r['seconds_to_preview']} | {r['seconds_to_ready']} | {share} |")
         out += [
             "",
-            "Seconds depend on the day's machine: jobs of the same code were ready after 104-112 s on",
+            "Seconds depend on the day's machine: the same preset's jobs were ready after 104-112 s on",
             "2026-12-02's third session's machine and after 138-164 s on the slower one of its first two",
             "(`job_timeline.md`).",
         ]
