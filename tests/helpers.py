@@ -46,6 +46,15 @@ def throwaway_postgres(prefix: str = "cmc_test_") -> Iterator[str]:
         admin.close()
 
 
+def finished_job(store, options: dict, stats: dict, has_cameras: bool = False) -> str:
+    """A record in scene store ``store`` taken through both phases to ``ready`` with ``stats``;
+    its id."""
+    rec, _ = store.create("o", options, ["a.jpg"], ["00.jpg"], has_cameras)
+    assert store.claim(rec.id, "poses", "w", 30) and store.advance(rec.id, "w", "train", "training")
+    assert store.claim(rec.id, "train", "w", 30) and store.advance(rec.id, "w", "done", "ready", stats=stats)
+    return rec.id
+
+
 def rotation(axis, angle: float) -> np.ndarray:
     """[3, 3] rotation by ``angle`` radians about ``axis`` (Rodrigues)."""
     a = np.asarray(axis, dtype=np.float64)

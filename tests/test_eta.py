@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from helpers import finished_job
 
 import cmc.method.training
 from cmc.config import PRESETS, preset_config
@@ -174,3 +175,49 @@ def test_cost_model_follows_the_config() -> None:
 def test_preset_steps_match_the_presets() -> None:
     assert PRESET_STEPS == {name: preset_config(name).steps for name in PRESETS}
     assert FAST_INPUT_RAYS_PER_MPI == input_rays_per_mpi(preset_config("fast"), 3)
+
+
+def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) -> None:
+    """worker.pipeline.JobPace: before a job has measured anything, its stages take what the
+    latest ready job of its kind measured (the same size limit; the same preset for training, the
+    same kind of cameras for the poses), else the reference run's pace; an unreadable store or
+    a job without measured steps falls back too."""
+    from cmc.method.eta import REFERENCE_POSES_S, reference_training_s
+    from service.db.scenes import SceneStore
+    from worker.pipeline import JobPace
+
+    store = SceneStore(f"sqlite:///{tmp_path / 'cmc.db'}")
+    fast = {"preset": "fast", "resolution": 504, "steps": 100}
+    measured = {
+        "poses": {"seconds": 5.0},
+        "train": {"build_seconds": 8.0, "step_seconds": 0.3, "bake_seconds": 5.0},
+        "preview": {"bake_seconds": 1.0},
+    }
+    new, _ = store.create("o", fast, ["a.jpg"], ["00.jpg"], False)
+    reference = JobPace(REFERENCE_POSES_S, REFERENCE_STEP_S)
+    assert JobPace.of(store, new) == reference  # nothing finished yet
+    assert reference.training_s(fast) == pytest.approx(reference_training_s(100))
+
+    finished_job(store, fast, measured)
+    finished_job(store, {**fast, "resolution": 1008}, {**measured, "poses": {"seconds": 50.0}})  # other photos
+    finished_job(store, {**fast, "preset": "paper"}, {**measured, "train": {**measured["train"], "step_seconds": 9}})
+    pace = JobPace.of(store, new)
+    assert pace == JobPace(5.0, 0.3, 8.0, 6.0)
+    assert pace.training_s(fast) == pytest.approx(8.0 + 100 * 0.3 + 6.0)
+    assert pace.training_s({**fast, "steps": None}) == pytest.approx(8.0 + PRESET_STEPS["fast"] * 0.3 + 6.0)
+
+    finished_job(store, fast, {**measured, "poses": {"seconds": 7.0}}, has_cameras=True)  # the app's cameras
+    assert JobPace.of(store, new).poses_s == 5.0
+    with_cameras, _ = store.create("o", fast, ["a.jpg"], ["00.jpg"], True)
+    assert JobPace.of(store, with_cameras).poses_s == 7.0
+    # the latest job of the kind counts; one that measured no steps (resumed at its last) does not
+    finished_job(store, fast, {**measured, "train": {**measured["train"], "step_seconds": 0.5}})
+    finished_job(store, fast, {"poses": {"seconds": 4.0}, "train": {"build_seconds": 8.0, "bake_seconds": 5.0}})
+    assert JobPace.of(store, new) == JobPace(4.0, 0.5, 8.0, 6.0)
+
+    class Unreadable:
+        def latest_ready(self, limit: int):
+            raise ConnectionError("the database is down")
+
+    assert JobPace.of(Unreadable(), new) == reference
+    store.close()

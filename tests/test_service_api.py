@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 import uvicorn
 from fastapi.testclient import TestClient
-from helpers import REDIS_URL, render_body, synthetic_upload
+from helpers import REDIS_URL, finished_job, render_body, synthetic_upload
 from PIL import Image
 
 from cmc.data.datasets import DEFAULT_LAYERS, render_layers
@@ -202,6 +202,27 @@ def test_eta_seconds_covers_the_rest_of_the_job(ready) -> None:
     assert bake[0][0] == 0.0 and bake[0][1] == pytest.approx(first, abs=0.15)
     progress = [p for p, _ in bake]  # as the heartbeat wrote it (bake() reports each MPI: test_baking)
     assert progress == sorted(progress) and all(eta > 0 for p, eta in bake if p < 1)
+
+
+def test_a_ready_job_leaves_its_pace_for_the_next(ready, tmp_path) -> None:
+    """A ready job's stats hold what its stages took (the pose phase, the build, a step, the
+    bakes), and a new job of its kind starts its estimate from them (worker.pipeline.JobPace;
+    the choice among several jobs: tests/test_eta.py)."""
+    from service.db.scenes import SceneStore
+    from worker.pipeline import JobPace
+
+    client, sid, _, _ = ready
+    rec = client.app.state.services.store.get(sid)
+    poses, train, preview = rec.stats["poses"], rec.stats["train"], rec.stats["preview"]
+    assert poses["seconds"] > 0 and train["step_seconds"] > 0
+    # the steps' mean within the attempt's training time
+    assert 25 * train["step_seconds"] <= train["seconds_this_attempt"] + 0.5
+    store = SceneStore(f"sqlite:///{tmp_path / 'pace.db'}")  # this job alone in a store
+    finished_job(store, rec.options, rec.stats, rec.has_cameras)
+    new, _ = store.create("o", rec.options, ["a.png"], ["00.png"], rec.has_cameras)
+    expected = (poses["seconds"], train["step_seconds"], train["build_seconds"])
+    assert JobPace.of(store, new) == JobPace(*expected, train["bake_seconds"] + preview["bake_seconds"])
+    store.close()
 
 
 def test_render_and_depth_match_the_ground_truth(ready) -> None:

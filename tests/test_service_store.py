@@ -7,7 +7,7 @@ from __future__ import annotations
 import time
 
 import pytest
-from helpers import throwaway_postgres
+from helpers import finished_job, throwaway_postgres
 
 from service.db.rows import IdempotencyConflict
 from service.db.scenes import SceneStore
@@ -183,3 +183,14 @@ def test_sqlite_store_creates_its_folder(tmp_path) -> None:
     make(s)
     assert (tmp_path / "fresh" / "data" / "cmc.db").exists()
     s.close()
+
+
+def test_latest_ready_lists_ready_jobs_latest_first(store: SceneStore) -> None:
+    first = finished_job(store, {"preset": "fast"}, {"n": 1})
+    failed, _ = make(store)
+    store.fail(failed.id, "training_failed", "diverged")
+    second = finished_job(store, {"preset": "fast"}, {"n": 2})
+    make(store)  # still queued
+    store.delete(first)  # a deleted scene's measurements still count
+    assert [(r.id, r.stats) for r in store.latest_ready(5)] == [(second, {"n": 2}), (first, {"n": 1})]
+    assert [r.id for r in store.latest_ready(1)] == [second]

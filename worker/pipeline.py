@@ -36,6 +36,7 @@ import math
 import threading
 import time
 import traceback
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -204,29 +205,74 @@ POSE_STAGE_PROGRESS = {
 }
 
 
-def _training_prior_s(options: dict[str, Any]) -> float:
-    """Seconds of the model build, training and baking, at the reference's speed (cmc.method.eta),
-    for the scene's options."""
-    from cmc.method.eta import PRESET_STEPS, reference_training_s
+# How many of the latest ready jobs a new job looks through for one of its kind (JobPace.of).
+PACE_LOOKBACK = 20
 
-    return reference_training_s(options.get("steps") or PRESET_STEPS[options["preset"]])
+
+@dataclass(frozen=True)
+class JobPace:
+    """What a job's stages take before the job has measured any, in seconds: as the latest ready
+    job of its kind measured them on this deployment (its ``stats``), else as the reference run
+    (:mod:`cmc.method.eta`). ``poses_s``: the pose phase (a job whose photos had the same size
+    limit and came with cameras or without, as this one); ``step_s``: a training step;
+    ``build_s``, ``bakes_s``: the model build and the bakes (the preview's and the final), None
+    for the reference's cost model in training steps (a job of the same preset and size limit)."""
+
+    poses_s: float
+    step_s: float
+    build_s: float | None = None
+    bakes_s: float | None = None
+
+    @staticmethod
+    def of(store: Any, rec: SceneRecord) -> JobPace:
+        """The pace for ``rec`` from ``store``'s latest ready jobs; the reference's when none is
+        of its kind or the store cannot say (an estimate never fails a job)."""
+        from cmc.method.eta import REFERENCE_POSES_S, REFERENCE_STEP_S
+
+        poses_s, train = None, None
+        try:
+            latest = store.latest_ready(PACE_LOOKBACK)
+        except Exception:
+            log.warning("job %s: no earlier job's pace (the store did not answer)", rec.id, exc_info=True)
+            latest = []
+        for r in latest:
+            if r.options.get("resolution") != rec.options.get("resolution"):
+                continue
+            if poses_s is None and r.has_cameras == rec.has_cameras:
+                poses_s = r.stats.get("poses", {}).get("seconds")
+            t = r.stats.get("train", {})
+            if train is None and r.options.get("preset") == rec.options.get("preset") and "step_seconds" in t:
+                preview = r.stats.get("preview", {}).get("bake_seconds", 0.0)
+                train = (t["step_seconds"], t["build_seconds"], t["bake_seconds"] + preview)
+        if train is None:
+            return JobPace(poses_s or REFERENCE_POSES_S, REFERENCE_STEP_S)
+        return JobPace(poses_s or REFERENCE_POSES_S, *train)
+
+    def training_s(self, options: dict[str, Any]) -> float:
+        """Seconds of the model build, training and baking for a job with ``options``."""
+        from cmc.method.eta import PRESET_STEPS, reference_training_s
+
+        steps = options.get("steps") or PRESET_STEPS[options["preset"]]
+        if self.build_s is None or self.bakes_s is None:
+            return reference_training_s(steps, self.step_s)
+        return self.build_s + steps * self.step_s + self.bakes_s
 
 
 def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     from cmc.data.datasets import CAMERAS_FILE
-    from cmc.method.eta import REFERENCE_POSES_S
     from cmc.poses import PoseEstimationCancelled, PoseOptions, estimate_poses, poses_from_client
 
-    later_s = _training_prior_s(rec.options)
+    pace = JobPace.of(ctx.store, rec)
+    later_s = pace.training_s(rec.options)
     t0 = time.perf_counter()
 
     def on_stage(stage: str) -> None:
         """Progress through the pose stages; the stages done so far give the time left in them."""
         done = POSE_STAGE_PROGRESS.get(stage, 0.0)
-        left = REFERENCE_POSES_S if done == 0 else (time.perf_counter() - t0) * (1 - done) / done
+        left = pace.poses_s if done == 0 else (time.perf_counter() - t0) * (1 - done) / done
         hb.set(progress=done, eta_seconds=round(left + later_s, 1), detail=f"camera poses: {stage}")
 
-    eta = round(REFERENCE_POSES_S + later_s, 1)
+    eta = round(pace.poses_s + later_s, 1)
     hb.set(status="estimating_poses", progress=0.0, eta_seconds=eta, detail="estimating camera poses")
     hb.flush()
     layout = SceneLayout(rec.id)
@@ -253,8 +299,9 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     except PoseEstimationCancelled:
         raise JobStopped(hb.reason or "cancelled") from None
     hb.check()
-    stats = {**rec.stats, "poses": {"timings_s": result.timings, **result.stats}}
-    eta = round(_training_prior_s(rec.options), 1)
+    poses = {"seconds": round(time.perf_counter() - t0, 2), "timings_s": result.timings, **result.stats}
+    stats = {**rec.stats, "poses": poses}
+    eta = round(later_s, 1)
     waiting = dict(progress=0.0, eta_seconds=eta, detail=WAITING, stats=stats)
     if not ctx.store.advance(rec.id, ctx.worker_id, "train", "training", **waiting):
         raise JobStopped("lease_lost")
@@ -342,7 +389,7 @@ class _TrainPhase:
 
     def __init__(self, ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path):
         from cmc.data.datasets import load_scene_folder
-        from cmc.method.eta import REFERENCE_STEP_S, bake_steps, build_steps, input_rays_per_mpi
+        from cmc.method.eta import bake_steps, build_steps, input_rays_per_mpi
         from cmc.serving.baking import PREVIEW_TEXEL_SCALE
 
         self.ctx, self.rec, self.hb, self.layout = ctx, rec, hb, SceneLayout(rec.id)
@@ -355,7 +402,9 @@ class _TrainPhase:
         self.bake_s: float | None = None  # the final bake's seconds as this attempt's preview bake predicts
         at = ctx.settings.preview_at
         self.preview_step = math.ceil(at * cfg.steps) if at < 1 and "preview" not in rec.stats else None
-        self.step_s = REFERENCE_STEP_S  # until this worker has built its model (then: its pace) and trained
+        # until this attempt has built its model (then: the build's pace) and trained two steps
+        self.step_s = JobPace.of(ctx.store, rec).step_s
+        self.steps_measured = False  # whether step_s is this attempt's own measured step time
         self.preview_s = 0.0  # seconds this attempt spent baking the preview (no training step's time)
         self.device = _training_device(ctx.settings)
         self.stats: dict[str, Any] = dict(rec.stats)
@@ -452,7 +501,7 @@ class _TrainPhase:
     def _on_progress(self, p: Progress) -> None:
         trained = p.step - self.resumed_from
         if trained > 1:
-            self.step_s = (p.elapsed_s - self.preview_s) / trained
+            self.step_s, self.steps_measured = (p.elapsed_s - self.preview_s) / trained, True
             eta = round(p.eta_s + self._bakes_s(), 1)
         else:  # the attempt's first step pays one-off costs: the steps to come keep the build's pace
             eta = self._eta(p.total - p.step)
@@ -513,6 +562,8 @@ class _TrainPhase:
         self.stats["train"].update(
             seconds_this_attempt=round(train_s, 2), bake_seconds=round(time.perf_counter() - t0, 2)
         )
+        if self.steps_measured:  # the next jobs' first estimate (JobPace)
+            self.stats["train"]["step_seconds"] = round(self.step_s, 4)
 
     def make_ready(self) -> None:
         """Make the scene ready, and drop the checkpoint and the preview the final bake replaces."""

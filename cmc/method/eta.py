@@ -9,8 +9,10 @@ step, predicts its step time as the reconstruction-only one times :func:`full_co
 ratio of rays a step renders in the two phases (rendering every ray through every MPI dominates
 a step). From its first step on, the full phase's own measured time replaces the prediction.
 
-Stages that have not run yet are estimated from a reference run until they measure their own
-speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's 2-core CPU.
+Stages that have not run yet are estimated as the latest ready job of the same kind measured
+them on the deployment (``worker.pipeline.JobPace``), else from a reference run, until they
+measure their own speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's
+2-core CPU.
 
 * :data:`REFERENCE_POSES_S`: structure from motion, 12.7 s (median of 3, bench/reports/history/poses_fern.md).
 * :data:`REFERENCE_STEP_S`: a training step, 0.42 s in ``cmc serve``: the mean step of three
@@ -105,10 +107,10 @@ def final_bake_s(bake_cost: float, step_s: float, preview_estimate_s: float | No
     return bake_cost * step_s if preview_estimate_s is None else preview_estimate_s
 
 
-def reference_training_s(steps: int) -> float:
-    """Seconds to build the model, train ``steps`` steps and bake, at the reference's speed
-    (fern, ``fast``)."""
-    return (build_steps(504, 378) + steps + bake_steps(504, 378, 1.2, FAST_INPUT_RAYS_PER_MPI)) * REFERENCE_STEP_S
+def reference_training_s(steps: int, step_s: float = REFERENCE_STEP_S) -> float:
+    """Seconds to build the model, train ``steps`` steps and bake, as the reference (fern,
+    ``fast``) counts them in training steps, at ``step_s`` seconds a step."""
+    return (build_steps(504, 378) + steps + bake_steps(504, 378, 1.2, FAST_INPUT_RAYS_PER_MPI)) * step_s
 
 
 # A phase's step time is the mean of its last this many steps: steps get slower as training goes

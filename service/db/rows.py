@@ -48,7 +48,7 @@ class SceneRow(Base):
     updated_at: Mapped[float] = mapped_column(Float)
     enqueued_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     started_at: Mapped[float | None] = mapped_column(Float, nullable=True)
-    finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+    finished_at: Mapped[float | None] = mapped_column(Float, nullable=True, index=True)  # the latest jobs' pace
     send_at: Mapped[float | None] = mapped_column(Float, nullable=True, index=True)  # outbox: message due
 
 

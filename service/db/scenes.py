@@ -195,6 +195,14 @@ class SceneStore:
             )
             return [(st, float(d)) for st, d in rows]
 
+    def latest_ready(self, limit: int) -> list[SceneRecord]:
+        """Up to ``limit`` scenes whose job finished ready, the latest first, deleted ones included
+        (what the worker measured on them, ``stats``, outlives the scene)."""
+        q = select(SceneRow).where(SceneRow.status == "ready", SceneRow.finished_at.is_not(None))
+        q = q.order_by(SceneRow.finished_at.desc()).limit(limit)
+        with self._session() as s:
+            return [SceneRecord.of(r) for r in s.scalars(q)]
+
     # -- changes by the API ---------------------------------------------------------------------
 
     def delete(self, scene_id: str) -> None:
