@@ -7,7 +7,11 @@ run: seconds from the upload to ``preview_ready`` and to ``ready``, the seconds 
 and how good the ETA was (issue 39: within 25 % of the truth from the first 10 % of the job on):
 at every poll from 10 % of the job's duration on, ``|eta_seconds - seconds left| / seconds left``;
 the median, the 90th percentile and the largest, and the share of polls within 25 %. The polls
-of the last 5 s are left out (a few seconds' error is a large share of nothing).
+of the last 5 s are left out (a few seconds' error is a large share of nothing). Also the error of
+the first estimate the job showed (while its poses are estimated, before it has measured
+anything). Jobs of the same step count share a data folder, so a second one starts its estimate
+from the first one's measured pace (``worker.pipeline.JobPace``), as on a deployment that has run
+a job before; ``earlier_jobs`` counts the scenes already there.
 
 Usage (repository root, nothing else running):
     PYTHONPATH=. python bench/job_timeline.py --data ../shared/datasets/llff/fern --steps 80,300 \\
@@ -19,8 +23,10 @@ table of an earlier report.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import sqlite3
 import statistics
 import sys
 import tempfile
@@ -65,10 +71,19 @@ def eta_errors(samples: list[dict], total_s: float) -> dict:
     }
 
 
+def _scenes_in(database: Path) -> int:
+    """Scenes in a ``cmc serve`` data folder's SQLite database (0 before its first run)."""
+    if not database.exists():
+        return 0
+    with contextlib.closing(sqlite3.connect(database)) as db:
+        return db.execute("select count(*) from scenes").fetchone()[0]
+
+
 def run(scene: Path, steps: int, poll_s: float, tmp: Path) -> dict:
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     data, log = tmp / f"data-{steps}", tmp / f"serve-{steps}.log"
+    earlier = _scenes_in(data / "cmc.db")
     env = {k: v for k, v in os.environ.items() if k not in ("CMC_API_KEYS", "CMC_API_KEYS_FILE")}
     env.update(PYTHONPATH=str(ROOT), CMC_DEVICE="cpu", CMC_DATA_DIR=str(data))
     serve = [sys.executable, "-m", "cmc.cli", "serve", "--log-level", "warning", "--data-dir", str(data)]
@@ -99,9 +114,14 @@ def run(scene: Path, steps: int, poll_s: float, tmp: Path) -> dict:
         by_status: dict[str, float] = {}
         for a, b in zip(samples, samples[1:], strict=False):
             by_status[a["status"]] = by_status.get(a["status"], 0.0) + b["t"] - a["t"]
+        first = next(x for x in samples if x["eta_seconds"] is not None)
         return {
             "steps": steps,
+            "earlier_jobs": earlier,
             "seconds_to_ready": round(total, 1),
+            # the first estimate the job showed, against the truth then (before any stage of this
+            # job measured itself: the reference's pace, or the latest earlier job's)
+            "first_eta_error": round(abs(first["eta_seconds"] - (total - first["t"])) / (total - first["t"]), 3),
             "seconds_to_preview": None if preview is None else round(preview, 1),
             "seconds_by_status": {k: round(v, 1) for k, v in by_status.items()},
             "eta_relative_error": eta_errors(samples, total),
@@ -113,15 +133,17 @@ def run(scene: Path, steps: int, poll_s: float, tmp: Path) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", required=True, help="an LLFF scene folder with its photos in images/")
+    ap.add_argument("--data", help="an LLFF scene folder with its photos in images/ (required to run)")
     ap.add_argument("--steps", default="80,300", help="comma-separated training steps, one job each")
     ap.add_argument("--poll", type=float, default=0.5, help="seconds between status polls")
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--out", help="the report to write (required to run)")
     ap.add_argument("--table", help="only print the markdown table of this report")
     args = ap.parse_args()
     if args.table:
         print(summary_table(json.loads(Path(args.table).read_text())))
         return
+    if not args.data or not args.out:
+        ap.error("--data and --out are required to run jobs")
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         for steps in (int(s) for s in args.steps.split(",")):
@@ -142,16 +164,17 @@ def main() -> None:
 def summary_table(report: dict) -> str:
     """A markdown table of a report's runs."""
     lines = [
-        "| steps | preview after s | ready after s | poses / training / baking s "
-        "| ETA error: median / p90 / max | within 25 % |",
-        "|---|---|---|---|---|---|",
+        "| steps | earlier jobs | preview after s | ready after s | poses / training / baking s "
+        "| first ETA's error | ETA error: median / p90 / max | within 25 % |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in report["runs"]:
         st, e = r["seconds_by_status"], r["eta_relative_error"]
         stages = " / ".join(f"{st.get(k, 0.0):.1f}" for k in ("estimating_poses", "training", "baking"))
+        first = "-" if "first_eta_error" not in r else f"{r['first_eta_error']:.2f}"  # (reports before 2026-12-02)
         lines.append(
-            f"| {r['steps']} | {r['seconds_to_preview']} | {r['seconds_to_ready']} | {stages} | "
-            f"{e['median']:.2f} / {e['p90']:.2f} / {e['max']:.2f} | "
+            f"| {r['steps']} | {r.get('earlier_jobs', '-')} | {r['seconds_to_preview']} | {r['seconds_to_ready']} | "
+            f"{stages} | {first} | {e['median']:.2f} / {e['p90']:.2f} / {e['max']:.2f} | "
             f"{100 * e['share_within_25_percent']:.0f} % of {e['polls']} polls |"
         )
     return "\n".join(lines)
