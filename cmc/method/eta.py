@@ -16,9 +16,9 @@ measure their own speed: fern's three 12 MP photos at 504x378, ``fast`` preset, 
 
 * :data:`REFERENCE_POSES_S`: structure from motion, 12.7 s (median of 3, bench/reports/history/poses_fern.md).
 * :data:`REFERENCE_STEP_S`: a training step, 0.42 s in ``cmc serve``: the mean step of three
-  300-step jobs (bench/reports/current/job_timeline_fern_cpu_layout{1,2,3}.json, 2026-12-02:
+  300-step jobs (bench/reports/history/job_timeline_fern_cpu_layout{1,2,3}.json, 2026-12-02:
   125.1-126.6 s from the preview to the final bake). A GPU trains much faster: until training
-  has run a step, a job's estimate is pessimistic there.
+  has run a step, the estimate of a deployment's first job is pessimistic there.
 * The model build (the plane sweeps), in training steps (:func:`build_steps`), and baking
   (:func:`bake_steps`): modelled from the same kind of jobs. A job that bakes a preview measures its
   own bake speed there (:func:`final_bake_s`), and until it has trained a second step (the first
