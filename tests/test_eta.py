@@ -15,6 +15,7 @@ from cmc.data.datasets import synthetic_scene
 from cmc.method.eta import (
     FAST_INPUT_RAYS_PER_MPI,
     PRESET_STEPS,
+    REFERENCE_POSES_S,
     REFERENCE_STEP_S,
     TrainingETA,
     bake_steps,
@@ -126,12 +127,13 @@ def test_a_jobs_eta_keeps_the_builds_pace_until_its_second_step() -> None:
     against the 1 s the build's pace predicts); the ETA it writes then keeps the predicted step time
     for the steps to come (not 99 x 3 s), and from the second step on the measured one."""
     from cmc.method.training import Progress
-    from worker.pipeline import _TrainPhase
+    from worker.pipeline import JobPace, _TrainPhase
 
     writes: list[float] = []
     phase = _TrainPhase.__new__(_TrainPhase)  # only what _on_progress reads
     phase.hb = SimpleNamespace(set=lambda **fields: writes.append(fields["eta_seconds"]))
     phase.resumed_from, phase.preview_s, phase.preview_step, phase.stats = 0, 0.0, None, {}
+    phase.pace = JobPace(REFERENCE_POSES_S, REFERENCE_STEP_S)  # no earlier job: the reference's cost model
     phase.step_s, phase.bake_cost, phase.bake_s = 1.0, 7.0, 5.0  # the build's pace; the preview's bake
     phase.preview_cost, phase.build_cost = 0.25 * phase.bake_cost, 20.5
     eta = TrainingETA(100, first_full=30, full_cost_ratio=1.0)
@@ -141,6 +143,23 @@ def test_a_jobs_eta_keeps_the_builds_pace_until_its_second_step() -> None:
     eta.record(1, 1.2)
     phase._on_progress(Progress(2, 100, {}, 4.2, eta.remaining_s(2)))
     assert writes[-1] == pytest.approx(98 * 1.2 + 5.0)
+
+
+def test_a_jobs_train_phase_counts_the_build_and_bakes_as_the_latest_job_measured_them() -> None:
+    """worker.pipeline's train phase with an earlier job's pace (JobPace): before the build, the
+    build, the steps and both bakes take what that job measured; during the build, its pace
+    scales that job's step time (a GPU's steps gain more than its build: the reference's model in
+    steps would be far off there); once a preview is baked, its bake predicts the final one."""
+    from worker.pipeline import JobPace, _TrainPhase
+
+    phase = _TrainPhase.__new__(_TrainPhase)
+    phase.pace = JobPace(5.0, step_s=0.05, build_s=6.0, bake_s=8.0, preview_bake_s=2.0)  # a GPU worker's
+    phase.step_s, phase.bake_s, phase.stats, phase.preview_step = 0.05, None, {}, 0
+    phase.bake_cost, phase.preview_cost, phase.build_cost = 15.7, 15.7 / 4, 20.5
+    assert phase._eta(300, built=False) == pytest.approx(6.0 + 300 * 0.05 + 8.0 + 2.0)
+    assert phase.pace.step_s_from_build(9.0, 504, 378) == pytest.approx(0.075)  # a build 1.5x slower
+    phase.stats["preview"], phase.bake_s = {"bake_seconds": 1.5}, 6.0  # the preview baked
+    assert phase._eta(300) == pytest.approx(300 * 0.05 + 6.0)
 
 
 def test_cost_model_follows_the_config() -> None:
@@ -182,7 +201,7 @@ def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) ->
     latest ready job of its kind measured (the same size limit; the same preset for training, the
     same kind of cameras for the poses), else the reference run's pace; an unreadable store or
     a job without measured steps falls back too."""
-    from cmc.method.eta import REFERENCE_POSES_S, reference_training_s
+    from cmc.method.eta import reference_training_s
     from service.db.scenes import SceneStore
     from worker.pipeline import JobPace
 
@@ -202,7 +221,7 @@ def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) ->
     finished_job(store, {**fast, "resolution": 1008}, {**measured, "poses": {"seconds": 50.0}})  # other photos
     finished_job(store, {**fast, "preset": "paper"}, {**measured, "train": {**measured["train"], "step_seconds": 9}})
     pace = JobPace.of(store, new)
-    assert pace == JobPace(5.0, 0.3, 8.0, 6.0)
+    assert pace == JobPace(5.0, 0.3, 8.0, 5.0, 1.0)
     assert pace.training_s(fast) == pytest.approx(8.0 + 100 * 0.3 + 6.0)
     assert pace.training_s({**fast, "steps": None}) == pytest.approx(8.0 + PRESET_STEPS["fast"] * 0.3 + 6.0)
 
@@ -213,7 +232,15 @@ def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) ->
     # the latest job of the kind counts; one that measured no steps (resumed at its last) does not
     finished_job(store, fast, {**measured, "train": {**measured["train"], "step_seconds": 0.5}})
     finished_job(store, fast, {"poses": {"seconds": 4.0}, "train": {"build_seconds": 8.0, "bake_seconds": 5.0}})
-    assert JobPace.of(store, new) == JobPace(4.0, 0.5, 8.0, 6.0)
+    assert JobPace.of(store, new) == JobPace(4.0, 0.5, 8.0, 5.0, 1.0)
+
+    # a build that takes twice the measured job's predicts twice its step time
+    assert pace.step_s_from_build(16.0, 504, 378) == pytest.approx(0.6)
+    assert reference.step_s_from_build(16.0, 504, 378) == pytest.approx(step_s_from_build(16.0, 504, 378))
+    no_preview = {k: v for k, v in measured.items() if k != "preview"}
+    finished_job(store, {**fast, "preset": "paper"}, no_preview)
+    paper, _ = store.create("o", {**fast, "preset": "paper"}, ["a.jpg"], ["00.jpg"], False)
+    assert JobPace.of(store, paper) == JobPace(5.0, 0.3, 8.0, 5.0, None)
 
     class Unreadable:
         def latest_ready(self, limit: int):

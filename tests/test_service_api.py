@@ -220,8 +220,8 @@ def test_a_ready_job_leaves_its_pace_for_the_next(ready, tmp_path) -> None:
     store = SceneStore(f"sqlite:///{tmp_path / 'pace.db'}")  # this job alone in a store
     finished_job(store, rec.options, rec.stats, rec.has_cameras)
     new, _ = store.create("o", rec.options, ["a.png"], ["00.png"], rec.has_cameras)
-    expected = (poses["seconds"], train["step_seconds"], train["build_seconds"])
-    assert JobPace.of(store, new) == JobPace(*expected, train["bake_seconds"] + preview["bake_seconds"])
+    expected = (poses["seconds"], train["step_seconds"], train["build_seconds"], train["bake_seconds"])
+    assert JobPace.of(store, new) == JobPace(*expected, preview["bake_seconds"])
     store.close()
 
 

@@ -211,17 +211,19 @@ PACE_LOOKBACK = 20
 
 @dataclass(frozen=True)
 class JobPace:
-    """What a job's stages take before the job has measured any, in seconds: as the latest ready
+    """What a job's stages take before the job has measured them, in seconds: as the latest ready
     job of its kind measured them on this deployment (its ``stats``), else as the reference run
-    (:mod:`cmc.method.eta`). ``poses_s``: the pose phase (a job whose photos had the same size
-    limit and came with cameras or without, as this one); ``step_s``: a training step;
-    ``build_s``, ``bakes_s``: the model build and the bakes (the preview's and the final), None
-    for the reference's cost model in training steps (a job of the same preset and size limit)."""
+    (:mod:`cmc.method.eta`). ``poses_s``: the pose phase (from a job whose photos had the same
+    size limit and came with cameras or without, as this one); ``step_s``: a training step;
+    ``build_s``, ``bake_s``, ``preview_bake_s``: the model build, the final bake and the preview's
+    (from a job of the same preset and size limit; None: the reference's cost model, in training
+    steps, and for the preview also when that job baked none)."""
 
     poses_s: float
     step_s: float
     build_s: float | None = None
-    bakes_s: float | None = None
+    bake_s: float | None = None
+    preview_bake_s: float | None = None
 
     @staticmethod
     def of(store: Any, rec: SceneRecord) -> JobPace:
@@ -242,20 +244,29 @@ class JobPace:
                 poses_s = r.stats.get("poses", {}).get("seconds")
             t = r.stats.get("train", {})
             if train is None and r.options.get("preset") == rec.options.get("preset") and "step_seconds" in t:
-                preview = r.stats.get("preview", {}).get("bake_seconds", 0.0)
-                train = (t["step_seconds"], t["build_seconds"], t["bake_seconds"] + preview)
-        if train is None:
-            return JobPace(poses_s or REFERENCE_POSES_S, REFERENCE_STEP_S)
-        return JobPace(poses_s or REFERENCE_POSES_S, *train)
+                preview = r.stats.get("preview", {}).get("bake_seconds")
+                train = (t["step_seconds"], t["build_seconds"], t["bake_seconds"], preview)
+        return JobPace(poses_s or REFERENCE_POSES_S, *(train or (REFERENCE_STEP_S,)))
 
     def training_s(self, options: dict[str, Any]) -> float:
-        """Seconds of the model build, training and baking for a job with ``options``."""
+        """Seconds of the model build, training and baking (a preview too) for a job with ``options``."""
         from cmc.method.eta import PRESET_STEPS, reference_training_s
 
         steps = options.get("steps") or PRESET_STEPS[options["preset"]]
-        if self.build_s is None or self.bakes_s is None:
+        if self.build_s is None or self.bake_s is None:
             return reference_training_s(steps, self.step_s)
-        return self.build_s + steps * self.step_s + self.bakes_s
+        return self.build_s + steps * self.step_s + self.bake_s + (self.preview_bake_s or 0.0)
+
+    def step_s_from_build(self, build_s: float, width: int, height: int) -> float:
+        """Seconds per training step for a model build that takes ``build_s`` seconds on this
+        worker: the measured job's step time in the ratio of the two builds (the job's own device
+        and load show in its build first), else the reference's cost model
+        (:func:`cmc.method.eta.step_s_from_build`)."""
+        from cmc.method.eta import step_s_from_build
+
+        if self.build_s is None or self.build_s <= 0:
+            return step_s_from_build(build_s, width, height)
+        return self.step_s * build_s / self.build_s
 
 
 def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
@@ -384,8 +395,9 @@ class _TrainPhase:
     """One attempt at the train phase of a job: the model built (or resumed from the job's
     checkpoint), trained with progress, ETA and checkpoints, a preview baked part way, the final
     bake published and the scene made ready. ETAs count in training steps of this worker
-    (``step_s`` seconds each, measured once it trains), the model build as ``build_cost`` steps and
-    a bake as ``bake_cost`` steps until the preview's bake has measured this worker's bake speed."""
+    (``step_s`` seconds each, measured once it trains), the model build and the bakes as the
+    latest ready job of the kind measured them (:class:`JobPace`), else as ``build_cost`` and
+    ``bake_cost`` steps, until the preview's bake has measured this worker's bake speed."""
 
     def __init__(self, ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path):
         from cmc.data.datasets import load_scene_folder
@@ -402,8 +414,8 @@ class _TrainPhase:
         self.bake_s: float | None = None  # the final bake's seconds as this attempt's preview bake predicts
         at = ctx.settings.preview_at
         self.preview_step = math.ceil(at * cfg.steps) if at < 1 and "preview" not in rec.stats else None
-        # until this attempt has built its model (then: the build's pace) and trained two steps
-        self.step_s = JobPace.of(ctx.store, rec).step_s
+        self.pace = JobPace.of(ctx.store, rec)
+        self.step_s = self.pace.step_s  # until this attempt builds its model (then: the build's pace)
         self.steps_measured = False  # whether step_s is this attempt's own measured step time
         self.preview_s = 0.0  # seconds this attempt spent baking the preview (no training step's time)
         self.device = _training_device(ctx.settings)
@@ -416,18 +428,24 @@ class _TrainPhase:
     def _final_bake_s(self) -> float:
         from cmc.method.eta import final_bake_s
 
-        return final_bake_s(self.bake_cost, self.step_s, self.bake_s)
+        measured = self.bake_s if self.bake_s is not None else self.pace.bake_s
+        return final_bake_s(self.bake_cost, self.step_s, measured)
 
     def _bakes_s(self) -> float:
         """Seconds of the bakes still to come (the final, and the preview while pending)."""
-        return self._final_bake_s() + self._preview_pending() * self.preview_cost * self.step_s
+        if not self._preview_pending():
+            return self._final_bake_s()
+        preview = self.pace.preview_bake_s
+        return self._final_bake_s() + (self.preview_cost * self.step_s if preview is None else preview)
 
     def _eta(self, steps_left: float, built: bool = True) -> float:
-        return round((steps_left + (not built) * self.build_cost) * self.step_s + self._bakes_s(), 1)
+        build = 0.0
+        if not built:
+            build = self.build_cost * self.step_s if self.pace.build_s is None else self.pace.build_s
+        return round(build + steps_left * self.step_s + self._bakes_s(), 1)
 
     def build(self) -> None:
         """The model (plane sweeps: seconds to minutes), at the stored checkpoint when usable."""
-        from cmc.method.eta import step_s_from_build
         from cmc.method.training import Trainer
 
         cfg, hb = self.cfg, self.hb
@@ -443,7 +461,7 @@ class _TrainPhase:
             and the steps to come at the step time that pace predicts for this machine."""
             elapsed = time.perf_counter() - started
             whole = elapsed / share
-            self.step_s = step_s_from_build(whole, *size)
+            self.step_s = self.pace.step_s_from_build(whole, *size)
             eta = round(whole - elapsed + self._eta(cfg.steps), 1)
             hb.set(eta_seconds=eta, detail=f"{building}, {100 * share:.0f} % done)")
 
@@ -455,7 +473,7 @@ class _TrainPhase:
             return trainer
 
         self.trainer = _resume(self.ctx, self.rec, make(), make)
-        self.step_s = step_s_from_build(build_s, *size)  # until this attempt trains a second step
+        self.step_s = self.pace.step_s_from_build(build_s, *size)  # until this attempt trains a second step
         self.resumed_from = resumed = self.trainer.step
         self.stats["train"] = {
             "steps": cfg.steps,

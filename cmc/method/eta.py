@@ -97,14 +97,15 @@ def step_s_from_build(build_s: float, width: int, height: int) -> float:
     return build_s / build_steps(width, height)
 
 
-def final_bake_s(bake_cost: float, step_s: float, preview_estimate_s: float | None = None) -> float:
+def final_bake_s(bake_cost: float, step_s: float, measured_s: float | None = None) -> float:
     """Seconds the final bake is expected to take: ``bake_cost`` training steps (:func:`bake_steps`)
-    of ``step_s`` seconds, or once a preview was baked, ``preview_estimate_s`` (the preview's
-    measured bake scaled by its texels: fern's final bake took 4.1x the half-resolution preview's
-    in a process doing nothing else and 4-4.5x in ``cmc serve``, bench/PROFILE.md; on a GPU the
-    steps are far faster than the bake, which writes its textures on the CPU, and they would say
-    less still)."""
-    return bake_cost * step_s if preview_estimate_s is None else preview_estimate_s
+    of ``step_s`` seconds, or a measured estimate ``measured_s``: once a preview was baked, the
+    preview's measured bake scaled by its texels (fern's final bake took 4.1x the half-resolution
+    preview's in a process doing nothing else and 4-4.5x in ``cmc serve``, bench/PROFILE.md), or
+    before, the final bake of an earlier job of the kind (``worker.pipeline.JobPace``). On a GPU
+    the steps are far faster than the bake, which writes its textures on the CPU: they would say
+    less still."""
+    return bake_cost * step_s if measured_s is None else measured_s
 
 
 def reference_training_s(steps: int, step_s: float = REFERENCE_STEP_S) -> float:
