@@ -20,6 +20,7 @@ from cmc.method.eta import (
     TrainingETA,
     bake_steps,
     build_steps,
+    checkpoints_to_come,
     final_bake_s,
     first_full_step,
     full_cost_ratio,
@@ -120,6 +121,70 @@ def test_fit_reports_the_phase_aware_estimate(monkeypatch) -> None:
     assert abs(seen[10] - truth[10]) <= 0.05 * truth[10] and abs(naive - truth[10]) > 0.2 * truth[10]
     assert seen[50] == pytest.approx(truth[50])  # in the full phase: its own measured time
     assert seen[100] == 0.0
+
+
+def test_checkpoints_to_come_follow_fits_rule() -> None:
+    """checkpoints_to_come against Trainer.fit's rule played step by step: a write at every
+    multiple of ``every``, after the first step ``every_s`` past the last write, and at the end."""
+
+    def played(step, total, every, step_s, every_s, since):
+        writes, waited = 1, since  # the last write
+        for k in range(step + 1, total + 1):
+            waited += step_s
+            if k % every == 0 or (every_s is not None and waited >= every_s - 1e-9):
+                writes, waited = writes + 1, 0.0
+        return writes
+
+    rng = np.random.default_rng(0)
+    for _ in range(3000):
+        total = int(rng.integers(1, 400))
+        case = (
+            int(rng.integers(0, total + 1)),
+            total,
+            int(rng.integers(1, 300)),
+            float(rng.choice([0.07, 0.25, 1.0])),
+            [None, 0.5, 3.0, 60.0][int(rng.integers(4))],
+            float(rng.uniform(0, 70)),
+        )
+        assert checkpoints_to_come(*case) == played(*case), case
+    assert checkpoints_to_come(100, 300, 250, 0.3, 30.0, 0.0) == 3  # 30 s later (step 200), at step 250, the end
+
+
+def test_fit_counts_the_checkpoint_writes_to_come(monkeypatch, tmp_path) -> None:
+    """Once fit has written a checkpoint, Progress.eta_s holds the writes still to come at that
+    write's time (fake clock: steps of 1 s, writes of 3 s, every 40 steps and at the end)."""
+    cfg = preset_config("fast", steps=100, rays_per_view=64, unseen_rays=64, checkpoint_every=40)
+    cfg = replace(cfg, model=replace(cfg.model, num_planes=4), loss=replace(cfg.loss, recon_only_fraction=0.0))
+    trainer = Trainer(synthetic_scene(num_views=3, width=32, height=24), cfg)
+
+    class Clock:
+        now = 0.0
+
+        def perf_counter(self) -> float:
+            return self.now
+
+    clock = Clock()
+
+    def fake_step(self: Trainer) -> dict[str, float]:
+        clock.now += 1.0
+        self.step += 1
+        return {"mse": 0.0}
+
+    def fake_save(self: Trainer, path) -> None:
+        clock.now += 3.0
+
+    monkeypatch.setattr(cmc.method.training, "time", clock)
+    monkeypatch.setattr(Trainer, "train_step", fake_step)
+    monkeypatch.setattr(Trainer, "save_checkpoint", fake_save)
+    seen = {}
+    trainer.fit(
+        on_progress=lambda p: seen.setdefault(p.step, p.eta_s),
+        checkpoint_path=tmp_path / "c.pt",
+        checkpoint_seconds=None,
+    )
+    assert seen[30] == pytest.approx(70.0)  # no write measured yet: the steps alone
+    assert seen[50] == pytest.approx(50.0 + 2 * 3.0)  # the write at step 80 and the last one
+    assert seen[100] == pytest.approx(3.0)  # the last write, after the last step
 
 
 def test_a_jobs_eta_keeps_the_builds_pace_until_its_second_step() -> None:

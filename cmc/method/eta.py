@@ -114,6 +114,28 @@ def reference_training_s(steps: int, step_s: float = REFERENCE_STEP_S) -> float:
     return (build_steps(504, 378) + steps + bake_steps(504, 378, 1.2, FAST_INPUT_RAYS_PER_MPI)) * step_s
 
 
+def checkpoints_to_come(
+    step: int, total: int, every: int, step_s: float, every_s: float | None, since_saved_s: float
+) -> int:
+    """Checkpoint writes still to come in a run at ``step`` of ``total`` steps of ``step_s`` seconds,
+    by ``Trainer.fit``'s rule: after every step that is a multiple of ``every``, after the first
+    step that ends ``every_s`` seconds or more after the last write (``since_saved_s`` ago now; None:
+    no such writes), and one after the last step."""
+    marks = list(range((step // every + 1) * every, total + 1, every))  # writes by step count
+    count = len(marks) + 1
+    if every_s is None or step_s <= 0:
+        return count
+    per = max(1, math.ceil(every_s / step_s))  # steps from a write to the next by time
+    start, first = step, max(1, math.ceil((every_s - since_saved_s) / step_s))
+    for end in [*marks, total]:
+        if end > start:  # writes by time at start + first + i * per, before the next mark (or at the end)
+            last = end if end == total and end not in marks else end - 1
+            if start + first <= last:
+                count += (last - start - first) // per + 1
+        start, first = end, per
+    return count
+
+
 # A phase's step time is the mean of its last this many steps: steps get slower as training goes
 # (fern's full-loss steps 0.74 s at first, 0.81 s at the end, bench/job_timeline.md), which the
 # mean of the whole phase would lag behind.

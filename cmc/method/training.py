@@ -28,7 +28,7 @@ from cmc.config import LossConfig, TrainConfig
 from cmc.data.datasets import Scene, validate_scene
 from cmc.errors import CheckpointError
 from cmc.geometry.planes import sample_virtual_pose
-from cmc.method.eta import TrainingETA
+from cmc.method.eta import TrainingETA, checkpoints_to_come
 from cmc.method.losses import (
     alpha_entropy,
     appearance_consistency,
@@ -55,7 +55,8 @@ class Progress:
 
     Attributes: step (completed steps), total, losses (name -> value of the last step),
     elapsed_s (this process's training seconds), eta_s (estimated seconds left in training, each
-    loss phase at its own step time: :class:`cmc.method.eta.TrainingETA`).
+    loss phase at its own step time: :class:`cmc.method.eta.TrainingETA`; once a checkpoint was
+    written, with the writes to come at its time: :func:`cmc.method.eta.checkpoints_to_come`).
     """
 
     step: int
@@ -347,11 +348,16 @@ class Trainer:
         eta = TrainingETA.for_config(self.cfg, len(self.scene))
         history = []
 
+        save_s: float | None = None  # the last checkpoint write's seconds: those to come take as long
+
         def save() -> None:
+            nonlocal save_s
             assert checkpoint_path is not None
+            started = time.perf_counter()
             self.save_checkpoint(checkpoint_path)
             if on_checkpoint is not None:
                 on_checkpoint(Path(checkpoint_path))
+            save_s = time.perf_counter() - started
 
         while self.step < self.cfg.steps:
             if should_stop is not None and should_stop():
@@ -370,6 +376,17 @@ class Trainer:
             if on_progress is not None:
                 remaining = eta.remaining_s(self.step)
                 assert remaining is not None  # a step was just measured
+                if save_s is not None:  # and the checkpoint writes to come, the last one's time each
+                    steps_left = self.cfg.steps - self.step
+                    writes = checkpoints_to_come(
+                        self.step,
+                        self.cfg.steps,
+                        self.cfg.checkpoint_every,
+                        remaining / steps_left if steps_left else 0.0,
+                        checkpoint_seconds,
+                        time.perf_counter() - t_saved,
+                    )
+                    remaining += writes * save_s
                 on_progress(Progress(self.step, self.cfg.steps, losses, now - t0, remaining))
                 t_last = time.perf_counter()  # what the callback did (a preview bake) is no step's time
         if checkpoint_path is not None:
