@@ -384,7 +384,7 @@ class Trainer:
                         self.cfg.checkpoint_every,
                         remaining / steps_left if steps_left else 0.0,
                         checkpoint_seconds,
-                        time.perf_counter() - t_saved,
+                        now - t_saved,
                     )
                     remaining += writes * save_s
                 on_progress(Progress(self.step, self.cfg.steps, losses, now - t0, remaining))
