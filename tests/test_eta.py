@@ -30,6 +30,15 @@ from cmc.method.eta import (
 from cmc.method.training import Trainer
 
 
+class FakeClock:
+    """Stands in for ``time`` in cmc.method.training: the seconds a test moves it by."""
+
+    now = 0.0
+
+    def perf_counter(self) -> float:
+        return self.now
+
+
 def _naive_remaining_s(elapsed: float, done: int, total: int) -> float:
     """The estimate before cmc.method.eta: the mean step time so far times the steps left."""
     return elapsed / done * (total - done)
@@ -97,13 +106,7 @@ def test_fit_reports_the_phase_aware_estimate(monkeypatch) -> None:
     first_full = first_full_step(cfg)
     assert first_full == 30
 
-    class Clock:
-        now = 0.0
-
-        def perf_counter(self) -> float:
-            return self.now
-
-    clock = Clock()
+    clock = FakeClock()
 
     def fake_step(self: Trainer) -> dict[str, float]:
         clock.now += 1.0 if self.step < first_full else 1.4
@@ -157,13 +160,7 @@ def test_fit_counts_the_checkpoint_writes_to_come(monkeypatch, tmp_path) -> None
     cfg = replace(cfg, model=replace(cfg.model, num_planes=4), loss=replace(cfg.loss, recon_only_fraction=0.0))
     trainer = Trainer(synthetic_scene(num_views=3, width=32, height=24), cfg)
 
-    class Clock:
-        now = 0.0
-
-        def perf_counter(self) -> float:
-            return self.now
-
-    clock = Clock()
+    clock = FakeClock()
 
     def fake_step(self: Trainer) -> dict[str, float]:
         clock.now += 1.0
