@@ -71,6 +71,18 @@ def eta_errors(samples: list[dict], total_s: float) -> dict:
     }
 
 
+def end_bias(samples: list[dict], total_s: float) -> tuple[float, float]:
+    """The ETA's mean signed error in seconds (+: too long) at the polls of the last 10 % of
+    the training steps and at those while baking: where the checkpoint writes and the bake's
+    estimates show."""
+
+    def mean_error(polls: list[dict]) -> float:
+        return float(np.mean([s["eta_seconds"] - (total_s - s["t"]) for s in polls])) if polls else float("nan")
+
+    training = [s for s in samples if s["status"] == "training" and s["progress"] >= 0.9]
+    return mean_error(training), mean_error([s for s in samples if s["status"] == "baking"])
+
+
 def _scenes_in(database: Path) -> int:
     """Scenes in a ``cmc serve`` data folder's SQLite database (0 before its first run)."""
     if not database.exists():
@@ -165,17 +177,19 @@ def summary_table(report: dict) -> str:
     """A markdown table of a report's runs."""
     lines = [
         "| steps | earlier jobs | preview after s | ready after s | poses / training / baking s "
-        "| first ETA's error | ETA error: median / p90 / max | within 25 % |",
-        "|---|---|---|---|---|---|---|---|",
+        "| first ETA's error | ETA error: median / p90 / max | within 25 % | ETA's mean error at the end: "
+        "last 10 % of steps / baking, s |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in report["runs"]:
         st, e = r["seconds_by_status"], r["eta_relative_error"]
         stages = " / ".join(f"{st.get(k, 0.0):.1f}" for k in ("estimating_poses", "training", "baking"))
         first = "-" if "first_eta_error" not in r else f"{r['first_eta_error']:.2f}"  # (reports before 2026-12-02)
+        training, baking = end_bias(r["samples"], r["seconds_to_ready"])
         lines.append(
             f"| {r['steps']} | {r.get('earlier_jobs', '-')} | {r['seconds_to_preview']} | {r['seconds_to_ready']} | "
             f"{stages} | {first} | {e['median']:.2f} / {e['p90']:.2f} / {e['max']:.2f} | "
-            f"{100 * e['share_within_25_percent']:.0f} % of {e['polls']} polls |"
+            f"{100 * e['share_within_25_percent']:.0f} % of {e['polls']} polls | {training:+.1f} / {baking:+.1f} |"
         )
     return "\n".join(lines)
 

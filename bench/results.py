@@ -32,7 +32,7 @@ POSE_REPORTS = {
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 PROFILE_REPORT = "profile_job_fern_cpu_a245170.json"
 PREVIEW_REPORT = "preview_quality_fern_half.json"
-TIMELINE_REPORT = "job_timeline_fern_cpu_pace.json"
+TIMELINE_REPORT = "job_timeline_fern_cpu_ends.json"
 BUILD_REPORT = "model_build_time_fern_fused.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
 SERVICE_REPORT = "service_cpu.json"
@@ -270,9 +270,9 @@ def speed() -> list[str]:
             )
         out += [
             "",
-            "Seconds depend on the day's machine: the same preset's jobs were ready after 104-112 s on",
-            "2026-12-02's third session's machine and after 138-164 s on the slower one of its first two",
-            "(`job_timeline.md`).",
+            "Seconds depend on the day's machine: the same preset's jobs were ready after 104-115 s on",
+            "2026-12-02's third and fourth sessions' machines and after 130-164 s on the slower ones of its",
+            "first two and fifth (`job_timeline.md`).",
         ]
     return out
 

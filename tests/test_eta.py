@@ -28,6 +28,7 @@ from cmc.method.eta import (
     step_s_from_build,
 )
 from cmc.method.training import Trainer
+from cmc.serving.baking import PREVIEW_TEXEL_SCALE
 
 
 class FakeClock:
@@ -174,7 +175,7 @@ def test_fit_counts_the_checkpoint_writes_to_come(monkeypatch, tmp_path) -> None
     monkeypatch.setattr(Trainer, "train_step", fake_step)
     monkeypatch.setattr(Trainer, "save_checkpoint", fake_save)
     seen = {}
-    trainer.fit(
+    result = trainer.fit(
         on_progress=lambda p: seen.setdefault(p.step, p.eta_s),
         checkpoint_path=tmp_path / "c.pt",
         checkpoint_seconds=None,
@@ -182,6 +183,22 @@ def test_fit_counts_the_checkpoint_writes_to_come(monkeypatch, tmp_path) -> None
     assert seen[30] == pytest.approx(70.0)  # no write measured yet: the steps alone
     assert seen[50] == pytest.approx(50.0 + 2 * 3.0)  # the write at step 80 and the last one
     assert seen[100] == pytest.approx(3.0)  # the last write, after the last step
+    assert result.checkpoint_write_s == pytest.approx(3.0)
+
+    # an earlier run's write time (worker.pipeline.JobPace) counts them before this run wrote one
+    trainer.step, seen = 0, {}
+    trainer.fit(
+        on_progress=lambda p: seen.setdefault(p.step, p.eta_s),
+        checkpoint_path=tmp_path / "d.pt",
+        checkpoint_seconds=None,
+        checkpoint_write_s=2.0,
+    )
+    assert seen[30] == pytest.approx(70.0 + 3 * 2.0)  # steps 40 and 80, the end, at 2 s each
+    assert seen[50] == pytest.approx(50.0 + 2 * 3.0)  # this run's own write time from step 40 on
+    # without a checkpoint path there are no writes to count
+    trainer.step, seen = 0, {}
+    trainer.fit(on_progress=lambda p: seen.setdefault(p.step, p.eta_s), checkpoint_write_s=2.0)
+    assert seen[30] == pytest.approx(70.0)
 
 
 def test_a_jobs_eta_keeps_the_builds_pace_until_its_second_step() -> None:
@@ -222,6 +239,10 @@ def test_a_jobs_train_phase_counts_the_build_and_bakes_as_the_latest_job_measure
     assert phase.pace.step_s_from_build(9.0, 504, 378) == pytest.approx(0.075)  # a build 1.5x slower
     phase.stats["preview"], phase.bake_s = {"bake_seconds": 1.5}, 6.0  # the preview baked
     assert phase._eta(300) == pytest.approx(300 * 0.05 + 6.0)
+    # the final bake after a preview's: in the ratio of the earlier job's two bakes, else 4x (texels)
+    assert phase.pace.final_bake_from_preview(1.5) == pytest.approx(6.0)
+    assert JobPace(5.0, 0.05).final_bake_from_preview(1.5) == pytest.approx(1.5 / PREVIEW_TEXEL_SCALE**2)
+    assert JobPace(5.0, 0.05, 6.0, 8.0, None).final_bake_from_preview(1.5) == pytest.approx(6.0)
 
 
 def test_cost_model_follows_the_config() -> None:
@@ -271,7 +292,7 @@ def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) ->
     fast = {"preset": "fast", "resolution": 504, "steps": 100}
     measured = {
         "poses": {"seconds": 5.0},
-        "train": {"build_seconds": 8.0, "step_seconds": 0.3, "bake_seconds": 5.0},
+        "train": {"build_seconds": 8.0, "step_seconds": 0.3, "bake_seconds": 5.0, "checkpoint_seconds": 1.5},
         "preview": {"bake_seconds": 1.0},
     }
     new, _ = store.create("o", fast, ["a.jpg"], ["00.jpg"], False)
@@ -283,7 +304,7 @@ def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) ->
     finished_job(store, {**fast, "resolution": 1008}, {**measured, "poses": {"seconds": 50.0}})  # other photos
     finished_job(store, {**fast, "preset": "paper"}, {**measured, "train": {**measured["train"], "step_seconds": 9}})
     pace = JobPace.of(store, new)
-    assert pace == JobPace(5.0, 0.3, 8.0, 5.0, 1.0)
+    assert pace == JobPace(5.0, 0.3, 8.0, 5.0, 1.0, 1.5)
     assert pace.training_s(fast) == pytest.approx(8.0 + 100 * 0.3 + 6.0)
     assert pace.training_s({**fast, "steps": None}) == pytest.approx(8.0 + PRESET_STEPS["fast"] * 0.3 + 6.0)
 
@@ -294,7 +315,7 @@ def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) ->
     # the latest job of the kind counts; one that measured no steps (resumed at its last) does not
     finished_job(store, fast, {**measured, "train": {**measured["train"], "step_seconds": 0.5}})
     finished_job(store, fast, {"poses": {"seconds": 4.0}, "train": {"build_seconds": 8.0, "bake_seconds": 5.0}})
-    assert JobPace.of(store, new) == JobPace(4.0, 0.5, 8.0, 5.0, 1.0)
+    assert JobPace.of(store, new) == JobPace(4.0, 0.5, 8.0, 5.0, 1.0, 1.5)
 
     # a build that takes twice the measured job's predicts twice its step time
     assert pace.step_s_from_build(16.0, 504, 378) == pytest.approx(0.6)
@@ -302,7 +323,7 @@ def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) ->
     no_preview = {k: v for k, v in measured.items() if k != "preview"}
     finished_job(store, {**fast, "preset": "paper"}, no_preview)
     paper, _ = store.create("o", {**fast, "preset": "paper"}, ["a.jpg"], ["00.jpg"], False)
-    assert JobPace.of(store, paper) == JobPace(5.0, 0.3, 8.0, 5.0, None)
+    assert JobPace.of(store, paper) == JobPace(5.0, 0.3, 8.0, 5.0, None, 1.5)
 
     class Unreadable:
         def latest_ready(self, limit: int):

@@ -217,13 +217,17 @@ class JobPace:
     size limit and came with cameras or without, as this one); ``step_s``: a training step;
     ``build_s``, ``bake_s``, ``preview_bake_s``: the model build, the final bake and the preview's
     (from a job of the same preset and size limit; None: the reference's cost model, in training
-    steps, and for the preview also when that job baked none)."""
+    steps, and for the preview also when that job baked none); ``checkpoint_s``: that job's last
+    checkpoint write, at which training counts the writes to come until it has made one (None:
+    not before then). ``step_s`` is the steps' mean with the checkpoint writes among them, as a
+    job's training time holds them."""
 
     poses_s: float
     step_s: float
     build_s: float | None = None
     bake_s: float | None = None
     preview_bake_s: float | None = None
+    checkpoint_s: float | None = None
 
     @staticmethod
     def of(store: Any, rec: SceneRecord) -> JobPace:
@@ -245,7 +249,7 @@ class JobPace:
             t = r.stats.get("train", {})
             if train is None and r.options.get("preset") == rec.options.get("preset") and "step_seconds" in t:
                 preview = r.stats.get("preview", {}).get("bake_seconds")
-                train = (t["step_seconds"], t["build_seconds"], t["bake_seconds"], preview)
+                train = (t["step_seconds"], t["build_seconds"], t["bake_seconds"], preview, t.get("checkpoint_seconds"))
         return JobPace(poses_s or REFERENCE_POSES_S, *(train or (REFERENCE_STEP_S,)))
 
     def training_s(self, options: dict[str, Any]) -> float:
@@ -256,6 +260,15 @@ class JobPace:
         if self.build_s is None or self.bake_s is None:
             return reference_training_s(steps, self.step_s)
         return self.build_s + steps * self.step_s + self.bake_s + (self.preview_bake_s or 0.0)
+
+    def final_bake_from_preview(self, preview_s: float) -> float:
+        """Seconds the final bake is expected to take after a preview bake of ``preview_s``: in
+        the ratio of the measured job's two bakes, else by texels (the preview has a quarter)."""
+        from cmc.serving.baking import PREVIEW_TEXEL_SCALE
+
+        if self.bake_s is None or not self.preview_bake_s:
+            return preview_s / PREVIEW_TEXEL_SCALE**2
+        return preview_s * self.bake_s / self.preview_bake_s
 
     def step_s_from_build(self, build_s: float, width: int, height: int) -> float:
         """Seconds per training step for a model build that takes ``build_s`` seconds on this
@@ -505,7 +518,7 @@ class _TrainPhase:
         with self.ctx.storage.writing(self.layout.preview(), manifest=MANIFEST) as folder:
             bake(self.trainer.model, folder, scale=PREVIEW_TEXEL_SCALE)
         self.preview_s = time.perf_counter() - t
-        self.bake_s = self.preview_s / PREVIEW_TEXEL_SCALE**2
+        self.bake_s = self.pace.final_bake_from_preview(self.preview_s)
         self.stats["preview"] = {
             "step": step,
             "bake_seconds": round(self.preview_s, 2),
@@ -541,16 +554,19 @@ class _TrainPhase:
 
         t0 = time.perf_counter()
         try:
-            self.trainer.fit(
+            result = self.trainer.fit(
                 on_progress=self._on_progress,
                 should_stop=self.hb.should_stop,
                 checkpoint_path=checkpoint,
                 resume=False,
                 checkpoint_seconds=self.ctx.settings.checkpoint_seconds,
                 on_checkpoint=self._publish_checkpoint,
+                checkpoint_write_s=self.pace.checkpoint_s,
             )
         except TrainingCancelled:
             raise JobStopped(self.hb.reason or "cancelled") from None
+        if result.checkpoint_write_s is not None:  # the next jobs' first estimate (JobPace)
+            self.stats["train"]["checkpoint_seconds"] = round(result.checkpoint_write_s, 3)
         return time.perf_counter() - t0
 
     def bake_final(self, train_s: float) -> None:
@@ -561,8 +577,8 @@ class _TrainPhase:
         expected = self._final_bake_s()
 
         def eta_while_baking(left_s: float) -> float:
-            """Seconds left, at least 0.1 while an MPI is left (a small scene's bakes in less,
-            which would round to 0)."""
+            """Seconds left, at least 0.1 until the bake is done (a small scene's MPIs bake in
+            less, which would round to 0)."""
             return max(round(left_s, 1), 0.1)
 
         hb.set(status="baking", progress=0.0, eta_seconds=eta_while_baking(expected), detail="baking the MPIs")
@@ -571,9 +587,11 @@ class _TrainPhase:
         t0 = time.perf_counter()
 
         def on_progress(done: int, total: int) -> None:
-            """After each MPI: the share done, and the time left at the pace so far."""
-            left = (time.perf_counter() - t0) * (total - done) / done
-            hb.set(progress=done / total, eta_seconds=eta_while_baking(left) if done < total else 0.0)
+            """After each MPI: the share done, and the time left at the pace so far. The last
+            MPI's atlas is encoded after its call (``bake``), about one more MPI's time."""
+            units = total + 1
+            left = (time.perf_counter() - t0) * (units - done) / done
+            hb.set(progress=done / units, eta_seconds=eta_while_baking(left))
 
         with ctx.storage.writing(layout.baked(), manifest=MANIFEST) as baked:
             bake(self.trainer.model, baked, on_progress=on_progress)

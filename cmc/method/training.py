@@ -72,6 +72,7 @@ class TrainResult:
     steps: int
     seconds: float
     history: list[dict[str, float]] = field(default_factory=list)
+    checkpoint_write_s: float | None = None  # the last checkpoint write's seconds (None: none written)
 
 
 def lr_at(cfg: TrainConfig, step: int) -> float:
@@ -331,6 +332,7 @@ class Trainer:
         resume: bool = True,
         checkpoint_seconds: float | None = 60.0,
         on_checkpoint: Callable[[Path], None] | None = None,
+        checkpoint_write_s: float | None = None,
     ) -> TrainResult:
         """Train to ``cfg.steps``.
 
@@ -341,6 +343,8 @@ class Trainer:
         stopped past its grace period, a lost machine) loses; it is not part of the
         configuration, so changing it keeps checkpoints usable. ``on_checkpoint(path)`` is
         called after each write (to copy it elsewhere; it may move the file away).
+        ``Progress.eta_s`` counts the writes still to come at the last write's seconds, and before
+        this run has written one at ``checkpoint_write_s`` (an earlier run's; None: not at all).
         """
         if checkpoint_path is not None and resume and Path(checkpoint_path).exists():
             self.load_checkpoint(checkpoint_path)
@@ -348,16 +352,17 @@ class Trainer:
         eta = TrainingETA.for_config(self.cfg, len(self.scene))
         history = []
 
-        save_s: float | None = None  # the last checkpoint write's seconds: those to come take as long
+        save_s = checkpoint_write_s  # a checkpoint write's seconds: those to come take as long
+        written_s: float | None = None  # this run's last write's seconds
 
         def save() -> None:
-            nonlocal save_s
+            nonlocal save_s, written_s
             assert checkpoint_path is not None
             started = time.perf_counter()
             self.save_checkpoint(checkpoint_path)
             if on_checkpoint is not None:
                 on_checkpoint(Path(checkpoint_path))
-            save_s = time.perf_counter() - started
+            save_s = written_s = time.perf_counter() - started
 
         while self.step < self.cfg.steps:
             if should_stop is not None and should_stop():
@@ -376,7 +381,7 @@ class Trainer:
             if on_progress is not None:
                 remaining = eta.remaining_s(self.step)
                 assert remaining is not None  # a step was just measured
-                if save_s is not None:  # and the checkpoint writes to come, the last one's time each
+                if save_s is not None and checkpoint_path is not None:  # and the writes to come, each as long
                     steps_left = self.cfg.steps - self.step
                     writes = checkpoints_to_come(
                         self.step,
@@ -392,7 +397,7 @@ class Trainer:
         if checkpoint_path is not None:
             save()
         seconds = time.perf_counter() - t0
-        return TrainResult(self.model, self.step, seconds if math.isfinite(seconds) else 0.0, history)
+        return TrainResult(self.model, self.step, seconds if math.isfinite(seconds) else 0.0, history, written_s)
 
 
 def load_model(checkpoint_path: str | Path, scene: Scene, device: str | torch.device = "cpu") -> CMCModel:
