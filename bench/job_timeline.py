@@ -11,7 +11,8 @@ of the last 5 s are left out (a few seconds' error is a large share of nothing).
 the first estimate the job showed (while its poses are estimated, before it has measured
 anything). Jobs of the same step count share a data folder, so a second one starts its estimate
 from the first one's measured pace (``worker.pipeline.JobPace``), as on a deployment that has run
-a job before; ``earlier_jobs`` counts the scenes already there.
+a job before; ``earlier_jobs`` counts the scenes already there. Each run also keeps the scene's
+``stats`` as the worker recorded them (the stages' measured seconds).
 
 Usage (repository root, nothing else running):
     PYTHONPATH=. python bench/job_timeline.py --data ../shared/datasets/llff/fern --steps 80,300 \\
@@ -91,6 +92,13 @@ def _scenes_in(database: Path) -> int:
         return db.execute("select count(*) from scenes").fetchone()[0]
 
 
+def _stats_of(database: Path, scene_id: str) -> dict:
+    """What the worker measured on a scene (its record's ``stats``: the stages' seconds)."""
+    with contextlib.closing(sqlite3.connect(database)) as db:
+        row = db.execute("select stats from scenes where id = ?", (scene_id,)).fetchone()
+    return json.loads(row[0]) if row and row[0] else {}
+
+
 def run(scene: Path, steps: int, poll_s: float, tmp: Path) -> dict:
     port = free_port()
     url = f"http://127.0.0.1:{port}"
@@ -137,6 +145,7 @@ def run(scene: Path, steps: int, poll_s: float, tmp: Path) -> dict:
             "seconds_to_preview": None if preview is None else round(preview, 1),
             "seconds_by_status": {k: round(v, 1) for k, v in by_status.items()},
             "eta_relative_error": eta_errors(samples, total),
+            "stats": _stats_of(data / "cmc.db", sid),
             "samples": [{k: (round(v, 2) if isinstance(v, float) else v) for k, v in s.items()} for s in samples],
         }
     finally:

@@ -117,7 +117,7 @@ def test_fit_reports_the_phase_aware_estimate(monkeypatch) -> None:
     monkeypatch.setattr(cmc.method.training, "time", clock)
     monkeypatch.setattr(Trainer, "train_step", fake_step)
     seen = {}
-    trainer.fit(on_progress=lambda p: seen.setdefault(p.step, p.eta_s))
+    result = trainer.fit(on_progress=lambda p: seen.setdefault(p.step, p.eta_s))
     truth = {done: max(first_full - done, 0) * 1.0 + (100 - max(done, first_full)) * 1.4 for done in seen}
     # before the switch: recon-only time x the ray ratio 4/3 (the truth here is 1.4)
     assert seen[10] == pytest.approx(20 + 70 * 4 / 3)
@@ -125,6 +125,12 @@ def test_fit_reports_the_phase_aware_estimate(monkeypatch) -> None:
     assert abs(seen[10] - truth[10]) <= 0.05 * truth[10] and abs(naive - truth[10]) > 0.2 * truth[10]
     assert seen[50] == pytest.approx(truth[50])  # in the full phase: its own measured time
     assert seen[100] == 0.0
+    assert result.phase_step_s == pytest.approx((1.0, 1.4))  # each phase's mean step
+
+    # an earlier run's measured ratio (worker.pipeline.JobPace) predicts the full phase exactly
+    trainer.step, seen = 0, {}
+    trainer.fit(on_progress=lambda p: seen.setdefault(p.step, p.eta_s), full_cost_ratio=1.4)
+    assert seen[10] == pytest.approx(truth[10])
 
 
 def test_checkpoints_to_come_follow_fits_rule() -> None:
@@ -228,7 +234,8 @@ def test_a_jobs_train_phase_counts_the_build_and_bakes_as_the_latest_job_measure
     """worker.pipeline's train phase with an earlier job's pace (JobPace): before the build, the
     build, the steps and both bakes take what that job measured; during the build, its pace
     scales that job's step time (a GPU's steps gain more than its build: the reference's model in
-    steps would be far off there); once a preview is baked, its bake predicts the final one."""
+    steps would be far off there); once a preview is baked, the final bake still takes that job's
+    (the preview's bake, times its texels, predicts it only without such a job)."""
     from worker.pipeline import JobPace, _TrainPhase
 
     phase = _TrainPhase.__new__(_TrainPhase)
@@ -237,12 +244,9 @@ def test_a_jobs_train_phase_counts_the_build_and_bakes_as_the_latest_job_measure
     phase.bake_cost, phase.preview_cost, phase.build_cost = 15.7, 15.7 / 4, 20.5
     assert phase._eta(300, built=False) == pytest.approx(6.0 + 300 * 0.05 + 8.0 + 2.0)
     assert phase.pace.step_s_from_build(9.0, 504, 378) == pytest.approx(0.075)  # a build 1.5x slower
-    phase.stats["preview"], phase.bake_s = {"bake_seconds": 1.5}, 6.0  # the preview baked
-    assert phase._eta(300) == pytest.approx(300 * 0.05 + 6.0)
-    # the final bake after a preview's: in the ratio of the earlier job's two bakes, else 4x (texels)
-    assert phase.pace.final_bake_from_preview(1.5) == pytest.approx(6.0)
+    phase.stats["preview"], phase.bake_s = {"bake_seconds": 1.5}, phase.pace.final_bake_from_preview(1.5)
+    assert phase._eta(300) == pytest.approx(300 * 0.05 + 8.0)  # the preview baked: the final bake to come
     assert JobPace(5.0, 0.05).final_bake_from_preview(1.5) == pytest.approx(1.5 / PREVIEW_TEXEL_SCALE**2)
-    assert JobPace(5.0, 0.05, 6.0, 8.0, None).final_bake_from_preview(1.5) == pytest.approx(6.0)
 
 
 def test_cost_model_follows_the_config() -> None:
@@ -292,7 +296,13 @@ def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) ->
     fast = {"preset": "fast", "resolution": 504, "steps": 100}
     measured = {
         "poses": {"seconds": 5.0},
-        "train": {"build_seconds": 8.0, "step_seconds": 0.3, "bake_seconds": 5.0, "checkpoint_seconds": 1.5},
+        "train": {
+            "build_seconds": 8.0,
+            "step_seconds": 0.3,
+            "bake_seconds": 5.0,
+            "checkpoint_seconds": 1.5,
+            "phase_step_seconds": [0.25, 0.375],
+        },
         "preview": {"bake_seconds": 1.0},
     }
     new, _ = store.create("o", fast, ["a.jpg"], ["00.jpg"], False)
@@ -304,7 +314,7 @@ def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) ->
     finished_job(store, {**fast, "resolution": 1008}, {**measured, "poses": {"seconds": 50.0}})  # other photos
     finished_job(store, {**fast, "preset": "paper"}, {**measured, "train": {**measured["train"], "step_seconds": 9}})
     pace = JobPace.of(store, new)
-    assert pace == JobPace(5.0, 0.3, 8.0, 5.0, 1.0, 1.5)
+    assert pace == JobPace(5.0, 0.3, 8.0, 5.0, 1.0, 1.5, 1.5)
     assert pace.training_s(fast) == pytest.approx(8.0 + 100 * 0.3 + 6.0)
     assert pace.training_s({**fast, "steps": None}) == pytest.approx(8.0 + PRESET_STEPS["fast"] * 0.3 + 6.0)
 
@@ -315,7 +325,7 @@ def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) ->
     # the latest job of the kind counts; one that measured no steps (resumed at its last) does not
     finished_job(store, fast, {**measured, "train": {**measured["train"], "step_seconds": 0.5}})
     finished_job(store, fast, {"poses": {"seconds": 4.0}, "train": {"build_seconds": 8.0, "bake_seconds": 5.0}})
-    assert JobPace.of(store, new) == JobPace(4.0, 0.5, 8.0, 5.0, 1.0, 1.5)
+    assert JobPace.of(store, new) == JobPace(4.0, 0.5, 8.0, 5.0, 1.0, 1.5, 1.5)
 
     # a build that takes twice the measured job's predicts twice its step time
     assert pace.step_s_from_build(16.0, 504, 378) == pytest.approx(0.6)
@@ -323,7 +333,7 @@ def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) ->
     no_preview = {k: v for k, v in measured.items() if k != "preview"}
     finished_job(store, {**fast, "preset": "paper"}, no_preview)
     paper, _ = store.create("o", {**fast, "preset": "paper"}, ["a.jpg"], ["00.jpg"], False)
-    assert JobPace.of(store, paper) == JobPace(5.0, 0.3, 8.0, 5.0, None, 1.5)
+    assert JobPace.of(store, paper) == JobPace(5.0, 0.3, 8.0, 5.0, None, 1.5, 1.5)
 
     class Unreadable:
         def latest_ready(self, limit: int):

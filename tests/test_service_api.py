@@ -208,8 +208,8 @@ def test_eta_seconds_covers_the_rest_of_the_job(ready) -> None:
 
 def test_a_ready_job_leaves_its_pace_for_the_next(ready, tmp_path) -> None:
     """A ready job's stats hold what its stages took (the pose phase, the build, a step, the
-    bakes, a checkpoint write), and a new job of its kind starts its estimate from them (worker.pipeline.JobPace;
-    the choice among several jobs: tests/test_eta.py)."""
+    bakes, a checkpoint write, each loss phase's steps), and a new job of its kind starts its
+    estimate from them (worker.pipeline.JobPace; the choice among several jobs: tests/test_eta.py)."""
     from service.db.scenes import SceneStore
     from worker.pipeline import JobPace
 
@@ -217,13 +217,15 @@ def test_a_ready_job_leaves_its_pace_for_the_next(ready, tmp_path) -> None:
     rec = client.app.state.services.store.get(sid)
     poses, train, preview = rec.stats["poses"], rec.stats["train"], rec.stats["preview"]
     assert poses["seconds"] > 0 and train["step_seconds"] > 0 and train["checkpoint_seconds"] > 0
+    recon, full = train["phase_step_seconds"]  # each loss phase's mean step
     # the steps' mean within the attempt's training time
     assert 25 * train["step_seconds"] <= train["seconds_this_attempt"] + 0.5
     store = SceneStore(f"sqlite:///{tmp_path / 'pace.db'}")  # this job alone in a store
     finished_job(store, rec.options, rec.stats, rec.has_cameras)
     new, _ = store.create("o", rec.options, ["a.png"], ["00.png"], rec.has_cameras)
     expected = (poses["seconds"], train["step_seconds"], train["build_seconds"], train["bake_seconds"])
-    assert JobPace.of(store, new) == JobPace(*expected, preview["bake_seconds"], train["checkpoint_seconds"])
+    measured = (preview["bake_seconds"], train["checkpoint_seconds"], full / recon)
+    assert JobPace.of(store, new) == JobPace(*expected, *measured)
     store.close()
 
 

@@ -219,8 +219,10 @@ class JobPace:
     (from a job of the same preset and size limit; None: the reference's cost model, in training
     steps, and for the preview also when that job baked none); ``checkpoint_s``: that job's last
     checkpoint write, at which training counts the writes to come until it has made one (None:
-    not before then). ``step_s`` is the steps' mean with the checkpoint writes among them, as a
-    job's training time holds them."""
+    not before then); ``full_cost_ratio``: that job's full-loss steps' mean time over its
+    reconstruction-only ones', at which training predicts the former from the latter until it
+    has run one (None: the ratio of rays, :func:`cmc.method.eta.full_cost_ratio`). ``step_s`` is
+    the steps' mean with the checkpoint writes among them, as a job's training time holds them."""
 
     poses_s: float
     step_s: float
@@ -228,6 +230,7 @@ class JobPace:
     bake_s: float | None = None
     preview_bake_s: float | None = None
     checkpoint_s: float | None = None
+    full_cost_ratio: float | None = None
 
     @staticmethod
     def of(store: Any, rec: SceneRecord) -> JobPace:
@@ -249,7 +252,16 @@ class JobPace:
             t = r.stats.get("train", {})
             if train is None and r.options.get("preset") == rec.options.get("preset") and "step_seconds" in t:
                 preview = r.stats.get("preview", {}).get("bake_seconds")
-                train = (t["step_seconds"], t["build_seconds"], t["bake_seconds"], preview, t.get("checkpoint_seconds"))
+                recon, full = t.get("phase_step_seconds") or (None, None)
+                ratio = full / recon if recon and full else None
+                train = (
+                    t["step_seconds"],
+                    t["build_seconds"],
+                    t["bake_seconds"],
+                    preview,
+                    t.get("checkpoint_seconds"),
+                    ratio,
+                )
         return JobPace(poses_s or REFERENCE_POSES_S, *(train or (REFERENCE_STEP_S,)))
 
     def training_s(self, options: dict[str, Any]) -> float:
@@ -262,13 +274,13 @@ class JobPace:
         return self.build_s + steps * self.step_s + self.bake_s + (self.preview_bake_s or 0.0)
 
     def final_bake_from_preview(self, preview_s: float) -> float:
-        """Seconds the final bake is expected to take after a preview bake of ``preview_s``: in
-        the ratio of the measured job's two bakes, else by texels (the preview has a quarter)."""
+        """Seconds the final bake is expected to take after a preview bake of ``preview_s``: as
+        the measured job's final bake, else by texels (the preview has a quarter). A preview
+        bakes in about 1.5 s on fern, so its own noise, times four or more, would outweigh what
+        it says of this job's pace (bench/job_timeline.md)."""
         from cmc.serving.baking import PREVIEW_TEXEL_SCALE
 
-        if self.bake_s is None or not self.preview_bake_s:
-            return preview_s / PREVIEW_TEXEL_SCALE**2
-        return preview_s * self.bake_s / self.preview_bake_s
+        return self.bake_s if self.bake_s is not None else preview_s / PREVIEW_TEXEL_SCALE**2
 
     def step_s_from_build(self, build_s: float, width: int, height: int) -> float:
         """Seconds per training step for a model build that takes ``build_s`` seconds on this
@@ -344,7 +356,7 @@ def deliver(ctx: JobContext, scene_id: str | None = None) -> list[str]:
         if not ctx.store.take_message(rec, taken):
             continue
         try:
-            ctx.queue.submit(rec.id, rec.phase)  # type: ignore[arg-type]
+            ctx.queue.submit(rec.id, rec.phase)
         except Exception as e:
             log.warning("job %s: sending %s failed (%s: %s); it stays due", rec.id, rec.phase, type(e).__name__, e)
             ctx.store.message_failed(rec.id, detail=QUEUE_DOWN)
@@ -562,11 +574,14 @@ class _TrainPhase:
                 checkpoint_seconds=self.ctx.settings.checkpoint_seconds,
                 on_checkpoint=self._publish_checkpoint,
                 checkpoint_write_s=self.pace.checkpoint_s,
+                full_cost_ratio=self.pace.full_cost_ratio,
             )
         except TrainingCancelled:
             raise JobStopped(self.hb.reason or "cancelled") from None
         if result.checkpoint_write_s is not None:  # the next jobs' first estimate (JobPace)
             self.stats["train"]["checkpoint_seconds"] = round(result.checkpoint_write_s, 3)
+        if all(result.phase_step_s):
+            self.stats["train"]["phase_step_seconds"] = [round(s, 4) for s in result.phase_step_s]
         return time.perf_counter() - t0
 
     def bake_final(self, train_s: float) -> None:
@@ -643,7 +658,7 @@ def run_video(ctx: JobContext, scene_id: str, path: str) -> str:
         with ctx.storage.reading(layout.baked()) as folder:
             baked = BakedScene.load(folder)
         with ctx.storage.writing(mp4) as out:  # published only if every frame was rendered
-            render_path_video(baked, path, out, on_frame=on_frame)  # type: ignore[arg-type]
+            render_path_video(baked, path, out, on_frame=on_frame)
     except VideoStopped:
         return "stopped"  # the unfinished file was dropped with its working folder
     except Exception as e:

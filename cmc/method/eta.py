@@ -149,7 +149,8 @@ class TrainingETA:
     Args:
         total: steps of the run; first_full: index of the first full-loss step
             (:func:`first_full_step`); full_cost_ratio: predicted full / reconstruction-only step
-            time (:func:`full_cost_ratio`), used only until one phase has no measurement.
+            time (:func:`full_cost_ratio`, or an earlier run's measured ratio), used only until
+            one phase has no measurement.
     """
 
     def __init__(self, total: int, first_full: int, full_cost_ratio: float):
@@ -160,10 +161,16 @@ class TrainingETA:
         # (fern on the CPU: 3 s against 1.8 s, bench/job_timeline.md), so it counts only until
         # its phase has another
         self._first: tuple[int, float] | None = None
+        # per phase: the seconds and the number of its steps after the first recorded
+        self._sum, self._count = [0.0, 0.0], [0, 0]
 
     @classmethod
-    def for_config(cls, cfg: TrainConfig, num_views: int) -> TrainingETA:
-        return cls(cfg.steps, first_full_step(cfg), full_cost_ratio(cfg, num_views))
+    def for_config(cls, cfg: TrainConfig, num_views: int, measured_ratio: float | None = None) -> TrainingETA:
+        """The estimator of a run of ``cfg`` on ``num_views`` photos; the full phase's steps
+        predicted at ``measured_ratio`` (an earlier run's full / reconstruction-only mean step
+        time) when given, else at the ratio of rays."""
+        ratio = measured_ratio if measured_ratio is not None else full_cost_ratio(cfg, num_views)
+        return cls(cfg.steps, first_full_step(cfg), ratio)
 
     def record(self, step: int, seconds: float) -> None:
         """Step ``step`` (0-based) took ``seconds``."""
@@ -172,6 +179,14 @@ class TrainingETA:
             self._first = (phase, seconds)
         else:
             self._recent[phase].append(seconds)
+            self._sum[phase] += seconds
+            self._count[phase] += 1
+
+    def phase_means(self) -> tuple[float | None, float | None]:
+        """The mean step time of each phase (reconstruction-only, full) over all its steps but the
+        first recorded; None for a phase without such steps."""
+        recon, full = (t / n if n else None for t, n in zip(self._sum, self._count, strict=True))
+        return recon, full
 
     def step_s(self, full: bool) -> float | None:
         """Seconds per step of a phase: the mean of its recent steps (the first step recorded only

@@ -73,6 +73,8 @@ class TrainResult:
     seconds: float
     history: list[dict[str, float]] = field(default_factory=list)
     checkpoint_write_s: float | None = None  # the last checkpoint write's seconds (None: none written)
+    # each loss phase's mean step time (reconstruction-only, full; TrainingETA.phase_means)
+    phase_step_s: tuple[float | None, float | None] = (None, None)
 
 
 def lr_at(cfg: TrainConfig, step: int) -> float:
@@ -333,6 +335,7 @@ class Trainer:
         checkpoint_seconds: float | None = 60.0,
         on_checkpoint: Callable[[Path], None] | None = None,
         checkpoint_write_s: float | None = None,
+        full_cost_ratio: float | None = None,
     ) -> TrainResult:
         """Train to ``cfg.steps``.
 
@@ -344,12 +347,15 @@ class Trainer:
         configuration, so changing it keeps checkpoints usable. ``on_checkpoint(path)`` is
         called after each write (to copy it elsewhere; it may move the file away).
         ``Progress.eta_s`` counts the writes still to come at the last write's seconds, and before
-        this run has written one at ``checkpoint_write_s`` (an earlier run's; None: not at all).
+        this run has written one at ``checkpoint_write_s`` (an earlier run's; None: not at all),
+        and until a full-loss step has run, those steps at ``full_cost_ratio`` times the
+        reconstruction-only ones (an earlier run's measured ratio; None: the ratio of rays,
+        :func:`cmc.method.eta.full_cost_ratio`).
         """
         if checkpoint_path is not None and resume and Path(checkpoint_path).exists():
             self.load_checkpoint(checkpoint_path)
         t0 = t_last = t_saved = time.perf_counter()
-        eta = TrainingETA.for_config(self.cfg, len(self.scene))
+        eta = TrainingETA.for_config(self.cfg, len(self.scene), full_cost_ratio)
         history = []
 
         save_s = checkpoint_write_s  # a checkpoint write's seconds: those to come take as long
@@ -397,7 +403,8 @@ class Trainer:
         if checkpoint_path is not None:
             save()
         seconds = time.perf_counter() - t0
-        return TrainResult(self.model, self.step, seconds if math.isfinite(seconds) else 0.0, history, written_s)
+        seconds = seconds if math.isfinite(seconds) else 0.0
+        return TrainResult(self.model, self.step, seconds, history, written_s, eta.phase_means())
 
 
 def load_model(checkpoint_path: str | Path, scene: Scene, device: str | torch.device = "cpu") -> CMCModel:
