@@ -20,11 +20,11 @@ measure their own speed: fern's three 12 MP photos at 504x378, ``fast`` preset, 
   125.1-126.6 s from the preview to the final bake). A GPU trains much faster: until training
   has run a step, the estimate of a deployment's first job is pessimistic there.
 * The model build (the plane sweeps), in training steps (:func:`build_steps`), and baking
-  (:func:`bake_steps`): modelled from the same kind of jobs. A job that bakes a preview measures its
-  own bake speed there (:func:`final_bake_s`), and until it has trained a second step (the first
-  pays one-off costs) it takes its step time from its own model build's pace
-  (:func:`step_s_from_build`; ``worker.pipeline``): a slower or faster CPU than the reference
-  shows in the build first.
+  (:func:`bake_steps`): modelled from the same kind of jobs. Without an earlier job, a job that
+  bakes a preview measures its bake speed there (:func:`final_bake_s`), and until it has trained
+  a second step (the first pays one-off costs) it takes its step time from its own model build's
+  pace (:func:`step_s_from_build`; ``worker.pipeline``): a slower or faster CPU than the
+  reference shows in the build first.
 """
 
 from __future__ import annotations
@@ -99,10 +99,10 @@ def step_s_from_build(build_s: float, width: int, height: int) -> float:
 
 def final_bake_s(bake_cost: float, step_s: float, measured_s: float | None = None) -> float:
     """Seconds the final bake is expected to take: ``bake_cost`` training steps (:func:`bake_steps`)
-    of ``step_s`` seconds, or a measured estimate ``measured_s``: once a preview was baked, the
-    preview's measured bake scaled by its texels (fern's final bake took 4.1x the half-resolution
-    preview's in a process doing nothing else and 4-4.5x in ``cmc serve``, bench/PROFILE.md), or
-    before, the final bake of an earlier job of the kind (``worker.pipeline.JobPace``). On a GPU
+    of ``step_s`` seconds, or a measured estimate ``measured_s``: the final bake of an earlier job
+    of the kind (``worker.pipeline.JobPace``), else once a preview was baked the preview's
+    measured bake scaled by its texels (fern's final bake took 4.1x the half-resolution preview's
+    in a process doing nothing else, 3.9-6.2x in ``cmc serve``, bench/job_timeline.md). On a GPU
     the steps are far faster than the bake, which writes its textures on the CPU: they would say
     less still."""
     return bake_cost * step_s if measured_s is None else measured_s
