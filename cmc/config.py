@@ -79,7 +79,8 @@ class LossConfig:
     # "cauchy" (occlusion-tolerant, on disparity; cmc.method.losses.robust_depth_consistency).
     depth_consistency: Literal["squared", "cauchy"] = "cauchy"
     lambda_alpha_entropy: float = 0.003  # visible alpha pushed to 0 or 1 (cmc.method.losses.alpha_entropy)
-    recon_only_fraction: float = 0.3  # first fraction of steps uses L_MSE only (paper: 15/50 epochs)
+    # first fraction of steps without the depth-consistency terms (paper: 15/50 epochs, L_MSE only)
+    recon_only_fraction: float = 0.3
     cross_view_colour: float = 0.1  # factor on the colour gradients of MPI i from input view j != i
 
 
