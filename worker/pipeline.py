@@ -422,7 +422,7 @@ class _TrainPhase:
     bake published and the scene made ready. ETAs count in training steps of this worker
     (``step_s`` seconds each, measured once it trains), the model build and the bakes as the
     latest ready job of the kind measured them (:class:`JobPace`), else as ``build_cost`` and
-    ``bake_cost`` steps, until the preview's bake has measured this worker's bake speed."""
+    ``bake_cost`` steps, the final bake once the preview is baked as its bake times its texels."""
 
     def __init__(self, ctx: JobContext, rec: SceneRecord, hb: _Heartbeat, scene_dir: Path):
         from cmc.data.datasets import load_scene_folder
@@ -436,7 +436,7 @@ class _TrainPhase:
         rays = input_rays_per_mpi(cfg, len(self.scene))
         self.bake_cost = bake_steps(cams.width, cams.height, cfg.model.margin, rays)
         self.build_cost = build_steps(cams.width, cams.height)
-        self.bake_s: float | None = None  # the final bake's seconds as this attempt's preview bake predicts
+        self.bake_s: float | None = None  # the final bake's seconds once the preview is baked (JobPace)
         at = ctx.settings.preview_at
         self.preview_step = math.ceil(at * cfg.steps) if at < 1 and "preview" not in rec.stats else None
         self.pace = JobPace.of(ctx.store, rec)
