@@ -31,7 +31,6 @@ import argparse
 import io
 import json
 import os
-import platform
 import signal
 import subprocess
 import sys
@@ -211,20 +210,15 @@ def main() -> None:
     }
     api_env = {**env, "CMC_MODE": "celery", "CMC_API_KEYS": "bench-key"}
     embedded_env = {k: v for k, v in env.items() if k not in ("CMC_API_KEYS", "CMC_API_KEYS_FILE")}
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True)
+    sys.path.insert(0, str(ROOT))
+    from cmc.eval.bench import git_commit, machine_info
+
     report: dict = {
         "date": date.today().isoformat(),
         "command": "python bench/intake_memory.py " + " ".join(sys.argv[1:]),
         "label": args.label,
-        "machine": {
-            "cpu": platform.processor() or platform.machine(),
-            "cores": os.cpu_count(),
-            "memory_gib": round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / (1 << 30)),
-            "python": platform.python_version(),
-            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
-        },
-        "git_commit": commit.stdout.strip() + ("+uncommitted changes" if dirty.stdout.strip() else ""),
+        "machine": machine_info(memory_gib=round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / (1 << 30))),
+        "git_commit": git_commit(),
         "pixels": args.pixels,
         "decode_memory_bytes": decode_memory_bytes(),
         "rows": [],

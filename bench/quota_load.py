@@ -34,7 +34,6 @@ import io
 import json
 import math
 import os
-import platform
 import random
 import re
 import shutil
@@ -57,6 +56,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from cmc.data.datasets import synthetic_scene  # noqa: E402
+from cmc.eval.bench import git_commit, machine_info  # noqa: E402
 from cmc.geometry.cameras import CameraFile, camera_file_to_dict  # noqa: E402
 from service.auth import key_digest  # noqa: E402
 from service.db.scenes import SceneStore  # noqa: E402
@@ -150,15 +150,8 @@ def main() -> None:
     report: dict = {
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "command": "python bench/quota_load.py " + " ".join(sys.argv[1:]),
-        "machine": {
-            "cpu": platform.processor() or platform.machine(),
-            "cores": os.cpu_count(),
-            "python": platform.python_version(),
-            "load_average_before": os.getloadavg()[0],
-        },
-        "git_commit": subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
-        ).stdout.strip(),
+        "machine": machine_info(load_average_before=os.getloadavg()[0]),
+        "git_commit": git_commit(),
         "settings": {k: v for k, v in vars(args).items() if k not in ("out", "redis")},
     }
     try:

@@ -42,7 +42,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import signal
 import statistics
 import subprocess
@@ -62,7 +61,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from cmc.data.datasets import load_llff  # noqa: E402
-from cmc.eval.bench import git_commit  # noqa: E402
+from cmc.eval.bench import git_commit, machine_info  # noqa: E402
 from cmc.geometry.cameras import CameraFile, camera_file_to_dict  # noqa: E402
 
 
@@ -236,7 +235,7 @@ def load_bench(args) -> None:
     report: dict = {
         "date": date.today().isoformat(),
         "command": "python bench/service_bench.py " + " ".join(sys.argv[1:]),
-        "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count()},
+        "machine": machine_info(),
         "git_commit": git_commit(),  # "+dirty" when the tree had uncommitted changes
         "settings": {k: str(v) for k, v in vars(args).items()},
         "render_settings_from_env": settings,
@@ -332,11 +331,7 @@ def main() -> None:
     report: dict = {
         "date": date.today().isoformat(),
         "command": "python bench/service_bench.py " + " ".join(sys.argv[1:]),
-        "machine": {
-            "cpu": platform.processor() or platform.machine(),
-            "cores": os.cpu_count(),
-            "python": platform.python_version(),
-        },
+        "machine": machine_info(),
         "git_commit": git_commit(),  # "+dirty" when the tree had uncommitted changes
         "settings": vars(args),
     }

@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import signal
 import subprocess
 import sys
@@ -46,6 +45,7 @@ sys.path.insert(0, str(ROOT))
 from servers import flush_redis, free_port, stop_process_groups, wait_ready, write_report  # noqa: E402
 
 from cmc.data.datasets import load_llff  # noqa: E402
+from cmc.eval.bench import git_commit, machine_info  # noqa: E402
 from cmc.geometry.cameras import CameraFile, camera_file_to_dict  # noqa: E402
 
 
@@ -152,19 +152,12 @@ def main() -> None:
     ap.add_argument("--redis", default="redis://127.0.0.1:6379/12", help="a Redis database of its own (emptied)")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="cmc-stop-time-"))
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True)
     report: dict = {
         "date": date.today().isoformat(),
         "command": "python bench/stop_time.py " + " ".join(sys.argv[1:]),
         "label": args.label,
-        "machine": {
-            "cpu": platform.processor() or platform.machine(),
-            "cores": os.cpu_count(),
-            "python": platform.python_version(),
-            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
-        },
-        "git_commit": commit.stdout.strip() + ("+uncommitted changes" if dirty.stdout.strip() else ""),
+        "machine": machine_info(),
+        "git_commit": git_commit(),
         "steps": args.steps,
         "after_steps": args.after_steps,
         "grace_s": args.grace,

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -33,7 +32,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cmc.eval.bench import git_commit  # noqa: E402
+from cmc.eval.bench import git_commit, machine_info  # noqa: E402
 
 # Times the two phases' steps into `out` (argv: data, steps, state); bake_time.py goes on from here.
 STEP_TIMES = r"""
@@ -131,12 +130,7 @@ def report_head(before: str) -> dict[str, object]:
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "git_commit": git_commit(),
         "before_commit": git("rev-parse", "--short", before),
-        "machine": {
-            "cpu": platform.processor() or platform.machine(),
-            "cores": os.cpu_count(),
-            "python": platform.python_version(),
-            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
-        },
+        "machine": machine_info(),
     }
 
 

@@ -230,6 +230,18 @@ def run_llff_bench(
     }
 
 
+def machine_info(**extra: Any) -> dict[str, Any]:
+    """The machine a benchmark report was measured on: CPU, cores, Python, ``OMP_NUM_THREADS``,
+    and any ``extra`` fields the script adds (its memory, the load before it ran)."""
+    return {
+        "cpu": platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+        **extra,
+    }
+
+
 def report_header(cfg: TrainConfig, device: torch.device) -> dict[str, Any]:
     """What every benchmark report starts with: preset, full configuration, device, commit, date,
     peak memory."""
