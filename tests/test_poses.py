@@ -22,8 +22,8 @@ from PIL import ExifTags, Image, ImageDraw, ImageFilter
 
 from cmc.cli import main
 from cmc.data.datasets import DEFAULT_LAYERS, SceneError, load_scene_folder, render_layers, synthetic_cameras
-from cmc.eval.alignment import similarity_from_cameras
-from cmc.geometry.cameras import CameraError, CameraFile, Cameras, camera_file_to_dict, cameras_from_llff
+from cmc.eval.alignment import apply_similarity_to_poses, register_photo, similarity_from_cameras
+from cmc.geometry.cameras import CameraError, CameraFile, Cameras, camera_file_to_dict, cameras_from_llff, look_at
 from cmc.poses import (
     PoseEstimationCancelled,
     PoseEstimationError,
@@ -254,6 +254,35 @@ def test_sfm_recovers_known_cameras(scene, tmp_path: Path) -> None:
     assert np.allclose(-R[:, :, 1].mean(0), [0, 1, 0], atol=0.02), R[:, :, 1]
     assert np.allclose(R[:, :, 2].mean(0), [0, 0, -1], atol=0.02), R[:, :, 2]
     assert np.allclose(-cams.world_from_cam[:, :3, 1].mean(0), [0, -1, 0], atol=0.02)
+
+
+def test_a_further_photo_registers_into_the_reconstruction(scene, tmp_path: Path) -> None:
+    """register_photo (the estimated-pose benchmark's registration of held-out photos): a fourth
+    photo from a known camera between and in front of the three lands at that camera once the
+    reconstruction's frame is mapped onto the true one; each training photo gives back its own
+    SfM pose; a photo of another scene and a photo of the wrong size are refused."""
+    cams, paths, other = scene
+    result = estimate_poses(paths, tmp_path / "scene", keep_originals=False)
+    est = result.camera_file.cameras
+    images = np.stack([np.asarray(Image.open(p).convert("RGB"), np.float32) / 255 for p in result.image_paths])
+    fourth = Cameras(cams.K[:1], look_at(np.array([0.12, -0.05, 0.3]), np.array([0.1, 0.0, 4.0]))[None], W, H)
+    photo = render_textured(fourth)[0].astype(np.float32) / 255
+    pose, info = register_photo(photo, images, result.sparse, est.K[0])
+    assert info["inliers"] > 50 and info["points"] <= info["matches"], info
+    s, R, t = similarity_from_cameras(est.world_from_cam, cams.world_from_cam)
+    mapped = apply_similarity_to_poses(pose[None], s, R, t)[0]
+    rot, _ = relative_errors(np.stack([fourth.world_from_cam[0], np.eye(4)]), np.stack([mapped, np.eye(4)]))
+    assert rot < 0.1, rot
+    assert np.linalg.norm(mapped[:3, 3] - fourth.world_from_cam[0, :3, 3]) < 0.01 * 0.6  # 1 % of the baseline
+    baseline = np.linalg.norm(est.centers[0] - est.centers[2])
+    for k in range(3):
+        own, _ = register_photo(images[k], images, result.sparse, est.K[k])
+        rot, _ = relative_errors(np.stack([own, np.eye(4)]), np.stack([est.world_from_cam[k], np.eye(4)]))
+        assert rot < 0.05 and np.linalg.norm(own[:3, 3] - est.centers[k]) < 0.002 * baseline, k
+    with pytest.raises(PoseEstimationError):
+        register_photo(other.astype(np.float32) / 255, images, result.sparse, est.K[0])
+    with pytest.raises(ValueError, match="the size of images"):
+        register_photo(photo[:-1], images, result.sparse, est.K[0])
 
 
 def test_sift_threshold_follows_the_photo_size() -> None:

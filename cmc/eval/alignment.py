@@ -1,7 +1,8 @@
 """Aligning two reconstructions of the same photos (benchmarks against a dataset's own model; not
 part of pose estimation): :func:`similarity_from_cameras` from their cameras, or through their 3D
 points: :func:`corresponding_points` pairs the points both see at the same pixels, and
-:func:`register_camera` finds the pose that sees given points at given pixels.
+:func:`register_camera` finds the pose that sees given points at given pixels;
+:func:`register_photo` registers a further photo into a reconstruction by SIFT matches to its photos.
 
 Conventions are :mod:`cmc.geometry.cameras`' (OpenCV axes, camera-to-world [..., 4, 4], pixel corner at 0);
 a similarity ``(scale, R [3, 3], t [3])`` maps ``X' = scale * R @ X + t``.
@@ -14,6 +15,8 @@ import numpy as np
 from cmc.errors import PoseEstimationError
 from cmc.geometry.cameras import nearest_rotation
 from cmc.poses.colmap import import_pycolmap, world_from_cam
+from cmc.poses.intake import sift_peak_threshold
+from cmc.poses.options import SparsePoints
 
 
 def similarity_from_cameras(
@@ -133,3 +136,88 @@ def register_camera(
     if found is None or found["num_inliers"] < 6:
         raise PoseEstimationError(f"no camera pose fits these {len(X)} points within {max_error_px} px")
     return world_from_cam(found["cam_from_world"]), np.asarray(found["inlier_mask"], dtype=bool)
+
+
+def sift_features(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT keypoints [M, 2] (cmc pixel convention, as COLMAP's) and unit descriptors [M, 128] of an
+    [H, W, 3] image in [0, 1], as :mod:`cmc.poses` extracts them from a photo of that size (8-bit
+    grey, the contrast threshold of :func:`~cmc.poses.intake.sift_peak_threshold`)."""
+    pycolmap = import_pycolmap()
+    image = np.asarray(image, np.float32)
+    grey = np.clip(np.rint(image @ np.array([0.299, 0.587, 0.114], np.float32) * 255), 0, 255).astype(np.uint8)
+    options = pycolmap.FeatureExtractionOptions()
+    options.max_image_size = max(grey.shape)
+    options.sift.peak_threshold = sift_peak_threshold(max(grey.shape), options.sift.peak_threshold)
+    extractor = pycolmap.FeatureExtractor.create(options, pycolmap.Device.cpu)
+    keypoints, descriptors = extractor.extract_from_uint8_array(np.ascontiguousarray(grey))
+    xy = np.array([[k.x, k.y] for k in keypoints], np.float64).reshape(-1, 2)
+    desc = np.asarray(descriptors.data, np.float32).reshape(-1, 128)
+    return xy, desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
+
+
+def mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -> np.ndarray:
+    """[M, 2] index pairs of mutual nearest neighbours between unit descriptors [A, 128] and
+    [B, 128] that pass Lowe's ratio test in both directions."""
+    dist = np.sqrt(np.maximum(2 - 2 * desc_a @ desc_b.T, 0))
+    if dist.shape[0] < 2 or dist.shape[1] < 2:
+        return np.zeros((0, 2), np.int64)
+    ab, ba = dist.argmin(1), dist.argmin(0)
+    two_a = np.partition(dist, 1, axis=1)[:, :2]
+    two_b = np.partition(dist, 1, axis=0)[:2]
+    i = np.arange(len(desc_a))
+    keep = (ba[ab] == i) & (two_a[:, 0] < ratio * two_a[:, 1]) & (two_b[0, ab] < ratio * two_b[1, ab])
+    return np.stack([i[keep], ab[keep]], 1)
+
+
+def register_photo(
+    photo: np.ndarray,
+    images: np.ndarray,
+    sparse: SparsePoints,
+    K: np.ndarray,
+    max_px: float = 1.0,
+    max_error_px: float = 2.0,
+    seed: int = 0,
+) -> tuple[np.ndarray, dict[str, int]]:
+    """Pose of a further photo of a scene in the frame of its reconstruction from ``images``, as
+    structure from motion registers a new photo into a model, the model left as it is.
+
+    SIFT matches between ``photo`` and each of ``images``; a match whose keypoint in image k lies
+    within ``max_px`` of where image k observes one of ``sparse``'s points gives that point's
+    pixel in ``photo``; the pose is :func:`register_camera`'s on those pairs, with the intrinsics
+    ``K`` the photos share.
+
+    Args:
+        photo: [H, W, 3] in [0, 1], the size of ``images`` [N, H, W, 3] (the reconstruction's
+            working images, whose pixels ``sparse.pixels`` [P, N, 2] are in).
+        K: [3, 3] the reconstruction's intrinsics.
+    Returns:
+        world_from_cam [4, 4], and counts: matches to a point, distinct points, RANSAC inliers.
+    Raises:
+        PoseEstimationError: too few matches to the points, or no pose fits them.
+    """
+    images = np.asarray(images)
+    if images.ndim != 4 or np.asarray(photo).shape != images.shape[1:] or sparse.pixels.shape[1] != len(images):
+        raise ValueError(
+            f"need a photo [H, W, 3] the size of images [N, H, W, 3] and points seen in N photos, got "
+            f"{np.asarray(photo).shape}, {images.shape} and {sparse.pixels.shape}"
+        )
+    height, width = images.shape[1:3]
+    kp_photo, desc_photo = sift_features(photo)
+    points, pixels = [], []
+    for k, image in enumerate(images):
+        seen = np.flatnonzero(sparse.seen_by(k))
+        if len(seen) == 0:
+            continue
+        kp, desc = sift_features(image)
+        m = mutual_matches(desc_photo, desc)
+        d = np.linalg.norm(kp[m[:, 1], None] - sparse.pixels[seen, k][None], axis=-1)  # [M, seen]
+        nearest = d.argmin(1)
+        on_point = d[np.arange(len(m)), nearest] <= max_px
+        points.append(sparse.xyz[seen[nearest[on_point]]])
+        pixels.append(kp_photo[m[on_point, 0]])
+    pairs = np.concatenate([np.c_[X, uv] for X, uv in zip(points, pixels, strict=True)]) if points else np.zeros((0, 5))
+    pairs = np.unique(pairs, axis=0)  # one point matched to one pixel through several images counts once
+    X, uv = pairs[:, :3], pairs[:, 3:]
+    pose, inliers = register_camera(K, width, height, X, uv, max_error_px=max_error_px, seed=seed)
+    distinct = len(np.unique(X, axis=0))
+    return pose, {"matches": len(X), "points": distinct, "inliers": int(inliers.sum())}
