@@ -194,6 +194,7 @@ def register_photo(
         world_from_cam [4, 4], and counts: matches to a point, distinct points, RANSAC inliers.
     Raises:
         PoseEstimationError: too few matches to the points, or no pose fits them.
+        ValueError: a photo of another size than the images, or points seen in another number of photos.
     """
     images = np.asarray(images)
     if images.ndim != 4 or np.asarray(photo).shape != images.shape[1:] or sparse.pixels.shape[1] != len(images):
