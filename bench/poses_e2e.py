@@ -260,9 +260,10 @@ def register_into_reconstruction(
     files = sorted(p for p in (data / "images_8").iterdir() if p.suffix.lower() == ".png")
     cams_b = est.camera_file.cameras
     baseline = mean_baseline(cams_b.centers)
+    features = [sift_features(image) for image in images]  # each photo registered matches against these
     control = []
     for k, view in enumerate(split.train_ids):
-        pose, info = register_photo(images[k], images, est.sparse, cams_b.K[k])
+        pose, info = register_photo(images[k], images, est.sparse, cams_b.K[k], image_features=features)
         control.append(
             {
                 "view": view,
@@ -275,7 +276,7 @@ def register_into_reconstruction(
         )
     poses, records = [], []
     for view in split.test_ids:
-        pose, info = register_photo(load_image(files[view]), images, est.sparse, cams_b.K[0])
+        pose, info = register_photo(load_image(files[view]), images, est.sparse, cams_b.K[0], image_features=features)
         poses.append(pose)
         records.append({"view": view, **info})
         print(f"view {view}: {records[-1]}", file=sys.stderr, flush=True)

@@ -177,6 +177,7 @@ def register_photo(
     max_px: float = 1.0,
     max_error_px: float = 2.0,
     seed: int = 0,
+    image_features: list[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> tuple[np.ndarray, dict[str, int]]:
     """Pose of a further photo of a scene in the frame of its reconstruction from ``images``, as
     structure from motion registers a new photo into a model, the model left as it is.
@@ -190,6 +191,8 @@ def register_photo(
         photo: [H, W, 3] in [0, 1], the size of ``images`` [N, H, W, 3] (the reconstruction's
             working images, whose pixels ``sparse.pixels`` [P, N, 2] are in).
         K: [3, 3] the reconstruction's intrinsics.
+        image_features: :func:`sift_features` of each of ``images``, for a caller registering
+            several photos into one reconstruction; computed here when not given.
     Returns:
         world_from_cam [4, 4], and counts: matches to a point, distinct points, RANSAC inliers.
     Raises:
@@ -203,13 +206,14 @@ def register_photo(
             f"{np.asarray(photo).shape}, {images.shape} and {sparse.pixels.shape}"
         )
     height, width = images.shape[1:3]
+    if image_features is None:
+        image_features = [sift_features(image) for image in images]
     kp_photo, desc_photo = sift_features(photo)
     points, pixels = [], []
-    for k, image in enumerate(images):
+    for k, (kp, desc) in enumerate(image_features):
         seen = np.flatnonzero(sparse.seen_by(k))
         if len(seen) == 0:
             continue
-        kp, desc = sift_features(image)
         m = mutual_matches(desc_photo, desc)
         d = np.linalg.norm(kp[m[:, 1], None] - sparse.pixels[seen, k][None], axis=-1)  # [M, seen]
         nearest = d.argmin(1)
