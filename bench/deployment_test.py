@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Any
 
 import boto3
-import httpx
+import httpx2
 from servers import free_port  # bench/servers.py: this script runs as python bench/deployment_test.py
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -112,7 +112,7 @@ class Stack:
         self.api_url = f"http://127.0.0.1:{env['API_PORT']}"
         self.s3_url = env["S3_PUBLIC_URL"]
         self.key = env["CMC_API_KEYS"].split(",")[0]
-        self.http = httpx.Client(base_url=self.api_url, headers={"Authorization": f"Bearer {self.key}"}, timeout=60)
+        self.http = httpx2.Client(base_url=self.api_url, headers={"Authorization": f"Bearer {self.key}"}, timeout=60)
         self.s3 = boto3.client(
             "s3",
             endpoint_url=self.s3_url,
@@ -352,7 +352,7 @@ def main_job(report: Report, stack: Stack, hooks: WebhookReceiver) -> None:
             assert r.status_code == 307, f"{url}: {r.status_code}"
             loc = r.headers["location"]
             assert loc.startswith(stack.s3_url), loc
-            data = httpx.get(loc, timeout=60).raise_for_status().content  # no API key: the URL is signed
+            data = httpx2.get(loc, timeout=60).raise_for_status().content  # no API key: the URL is signed
             assert data[:4] == magic, data[:8]
             got[url.rsplit("/", 1)[-1]] = len(data)
         c["detail"] = ", ".join(f"{k} {v} B" for k, v in got.items())

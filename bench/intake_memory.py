@@ -41,7 +41,7 @@ import uuid
 from datetime import date
 from pathlib import Path
 
-import httpx
+import httpx2
 from PIL import Image
 from servers import flush_redis, free_port, wait_ready, write_report
 
@@ -125,7 +125,7 @@ def upload(url: str, photo: tuple[str, bytes, str], headers: dict[str, str]) -> 
     name, data, media = photo
     stem, ext = name.rsplit(".", 1)
     files = [("images", (f"{stem}{k}.{ext}", data, media)) for k in range(3)]
-    r = httpx.post(f"{url}/v1/scenes", files=files, headers=headers, timeout=1800)
+    r = httpx2.post(f"{url}/v1/scenes", files=files, headers=headers, timeout=1800)
     return r.status_code, (r.json().get("id") or "") if r.status_code == 202 else r.text[:200]
 
 
@@ -138,7 +138,7 @@ def concurrent_uploads(url: str, photo: tuple[str, bytes, str], n: int, headers:
         barrier.wait()
         try:
             results[k] = upload(url, photo, headers)
-        except httpx.HTTPError as e:
+        except httpx2.HTTPError as e:
             results[k] = (0, repr(e))
 
     threads = [threading.Thread(target=one, args=(k,)) for k in range(n)]
@@ -174,7 +174,7 @@ def measure(shape: str, kind: str, n: int, photo, tmp: Path, env: dict[str, str]
             ids = [warm[1]] + [i for s, i in results if s == 202]
             deadline = time.time() + 1800
             while time.time() < deadline:
-                states = [httpx.get(f"{server.url}/v1/scenes/{i}", timeout=30).json()["status"] for i in ids]
+                states = [httpx2.get(f"{server.url}/v1/scenes/{i}", timeout=30).json()["status"] for i in ids]
                 if all(st in ("failed", "ready", "training", "baking") for st in states):
                     break
                 time.sleep(1)

@@ -35,7 +35,7 @@ import time
 from datetime import date
 from pathlib import Path
 
-import httpx
+import httpx2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -110,7 +110,7 @@ def run(scene: Path, steps: int, poll_s: float, tmp: Path) -> dict:
     proc = start([*serve, "--port", str(port)], env, log)
     try:
         wait_ready(url, "/healthz", 600, proc, log)
-        with httpx.Client(base_url=url, timeout=60) as client:
+        with httpx2.Client(base_url=url, timeout=60) as client:
             parts = upload_parts(scene, steps)
             t0 = time.perf_counter()
             r = client.post("/v1/scenes", files=parts)

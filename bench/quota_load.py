@@ -47,7 +47,7 @@ from collections import Counter, defaultdict
 from datetime import UTC, datetime
 from pathlib import Path
 
-import httpx
+import httpx2
 import numpy as np
 from PIL import Image
 from servers import free_port, stop_process_groups, wait_ready, write_report
@@ -172,7 +172,7 @@ def main() -> None:
         # warm-up: each replica loads each key's baked scene once (these renders are not counted)
         for url in urls:
             for key, owner in zip(keys, owners, strict=True):
-                r = httpx.post(
+                r = httpx2.post(
                     f"{url}/v1/scenes/{ready[owner]}/render",
                     json=camera,
                     headers={"Authorization": f"Bearer {key}"},
@@ -180,7 +180,7 @@ def main() -> None:
                 )
                 assert r.status_code == 200, r.text
         time.sleep(1.1)  # the warm-up's renders leave their rolling second
-        metrics_before = [rate_limited_totals(httpx.get(f"{u}/metrics", timeout=10).text) for u in urls]
+        metrics_before = [rate_limited_totals(httpx2.get(f"{u}/metrics", timeout=10).text) for u in urls]
 
         records: list[dict] = []
         rec_lock = threading.Lock()
@@ -200,7 +200,7 @@ def main() -> None:
             key, url = keys[n % len(keys)], urls[n % 2]
             sid = ready[owners[n % len(keys)]]
             rng = random.Random(n)
-            with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {key}"}, timeout=60) as c:
+            with httpx2.Client(base_url=url, headers={"Authorization": f"Bearer {key}"}, timeout=60) as c:
                 barrier.wait()
                 while not stop.is_set():
                     kind = rng.choices(["poll", "render", "upload", "delete"], [50, 30, 15, 5])[0]
@@ -229,7 +229,7 @@ def main() -> None:
                         if kind == "upload" and status == 202:
                             with rec_lock:
                                 mine[key].append(body["id"])
-                    except httpx.HTTPError as e:
+                    except httpx2.HTTPError as e:
                         status, code, fields, retry = 0, type(e).__name__, False, None
                     with rec_lock:
                         records.append(
@@ -258,7 +258,7 @@ def main() -> None:
             t.join()
         watcher.join()
         elapsed = time.perf_counter() - t_start
-        metrics_after = [rate_limited_totals(httpx.get(f"{u}/metrics", timeout=10).text) for u in urls]
+        metrics_after = [rate_limited_totals(httpx2.get(f"{u}/metrics", timeout=10).text) for u in urls]
         report["results"] = summarize(records, args, elapsed, keys, owners, store, peak_unfinished)
         refused_by_metrics = {
             limit: sum(a.get(limit, 0) - b.get(limit, 0) for a, b in zip(metrics_after, metrics_before, strict=True))

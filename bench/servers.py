@@ -16,7 +16,7 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 
-import httpx
+import httpx2
 
 
 def free_port() -> int:
@@ -50,9 +50,9 @@ def wait_ready(
         if proc is not None and proc.poll() is not None:
             raise RuntimeError(f"the server at {url} exited:\n{tail()}")
         try:
-            if httpx.get(url + path, timeout=2).status_code == 200:
+            if httpx2.get(url + path, timeout=2).status_code == 200:
                 return
-        except httpx.HTTPError:
+        except httpx2.HTTPError:
             pass
         time.sleep(0.2)
     raise RuntimeError(f"no answer from {url}{path}:\n{tail()}")

@@ -53,7 +53,7 @@ import uuid
 from datetime import date
 from pathlib import Path
 
-import httpx
+import httpx2
 import numpy as np
 from servers import flush_redis, free_port, stop_process_groups, wait_ready, write_report
 
@@ -176,7 +176,7 @@ def load_phase(url: str, headers: dict, targets: list[tuple[str, dict]], clients
     lock = threading.Lock()
 
     def client(c: int) -> None:
-        with httpx.Client(base_url=url, headers=headers, timeout=120) as http:
+        with httpx2.Client(base_url=url, headers=headers, timeout=120) as http:
             barrier.wait()
             for r in range(per_client):
                 sid, body = targets[(c * per_client + r) % len(targets)]
@@ -184,7 +184,7 @@ def load_phase(url: str, headers: dict, targets: list[tuple[str, dict]], clients
                 while True:
                     try:
                         resp = http.post(f"/v1/scenes/{sid}/render", json=body)
-                    except httpx.HTTPError:
+                    except httpx2.HTTPError:
                         status = 0
                         break
                     status = resp.status_code
@@ -243,7 +243,7 @@ def load_bench(args) -> None:
     }
     try:
         start_services(tmp, env, procs, port)
-        client = httpx.Client(base_url=url, headers=headers, timeout=120)
+        client = httpx2.Client(base_url=url, headers=headers, timeout=120)
         split = load_llff(fern)
         train = split.train
         names = train.names
@@ -339,7 +339,7 @@ def main() -> None:
         uvicorn = ["-m", "uvicorn", "service.app:create_app", "--factory", "--log-level", "warning"]
         start("api", [sys.executable, *uvicorn, "--port", str(port)])
         wait_ready(url, "/readyz", 200)
-        client = httpx.Client(base_url=url, headers=headers, timeout=120)
+        client = httpx2.Client(base_url=url, headers=headers, timeout=120)
 
         # 1. uploads of the phone JPEGs
         jpegs = sorted((fern / "images").glob("*.JPG"))
@@ -407,13 +407,13 @@ def main() -> None:
         barrier = threading.Barrier(args.concurrent)
 
         def one(k: int) -> None:
-            with httpx.Client(base_url=url, headers=headers, timeout=300) as c:
+            with httpx2.Client(base_url=url, headers=headers, timeout=300) as c:
                 barrier.wait()
                 t0 = time.perf_counter()
                 try:
                     r = c.post(f"/v1/scenes/{sid}/render", json=bodies[k % len(bodies)])
                     results.append((r.status_code, time.perf_counter() - t0, len(r.content)))
-                except httpx.HTTPError:
+                except httpx2.HTTPError:
                     results.append((0, time.perf_counter() - t0, 0))
 
         threads = [threading.Thread(target=one, args=(k,)) for k in range(args.concurrent)]

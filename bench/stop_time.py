@@ -37,7 +37,7 @@ import uuid
 from datetime import date
 from pathlib import Path
 
-import httpx
+import httpx2
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -93,7 +93,7 @@ def run(shape: str, args: argparse.Namespace, tmp: Path) -> dict:
         serve = [sys.executable, "-m", "cmc.cli", "serve", "--log-level", "warning", "--data-dir", str(data)]
         procs["stopped"] = start([*serve, "--port", str(port)], env, tmp / f"{shape}-serve.log")
         wait_ready(url, "/healthz", 600, procs["stopped"], tmp / f"{shape}-serve.log")
-    client = httpx.Client(base_url=url, headers=headers, timeout=60)
+    client = httpx2.Client(base_url=url, headers=headers, timeout=60)
     try:
         sid = client.post("/v1/scenes", files=fern_upload(Path(args.data), args.steps)).json()["id"]
         while True:

@@ -94,7 +94,7 @@ def synthetic_upload(
 ) -> tuple[list[tuple], Scene, Cameras]:
     """A tiny synthetic scene (known poses and depths) as the multipart parts of
     ``POST /v1/scenes``: PNG photos named ``view<i>.png``, its cameras file (OpenGL convention,
-    with near/far) and options. Returns (parts for httpx ``files=``, the scene, a novel camera
+    with near/far) and options. Returns (parts for httpx2 ``files=``, the scene, a novel camera
     halfway between input views 0 and 1 for checking renders against the exact ground truth)."""
     scene = synthetic_scene(num_views, width, height)
     parts: list[tuple] = []

@@ -18,7 +18,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import httpx
+import httpx2
 import pytest
 from PIL import Image
 
@@ -95,17 +95,17 @@ def test_concurrent_worst_case_uploads_stay_under_the_memory_ceiling(tmp_path: P
         while True:
             assert server.poll() is None and time.time() - t0 < 60, log.read_text()
             try:
-                if httpx.get(f"{url}/healthz", timeout=2).status_code == 200:
+                if httpx2.get(f"{url}/healthz", timeout=2).status_code == 200:
                     break
-            except httpx.HTTPError:
+            except httpx2.HTTPError:
                 time.sleep(0.1)
         small = [("images", (f"s{k}.png", _flat_png(96, 72), "image/png")) for k in range(3)]
-        assert httpx.post(f"{url}/v1/scenes", files=small, timeout=60).status_code == 202  # imports everything
+        assert httpx2.post(f"{url}/v1/scenes", files=small, timeout=60).status_code == 202  # imports everything
         idle = _memory(server.pid)["VmRSS"]
         photo = _flat_png(width, height)
         files = [("images", (f"flat{k}.png", photo, "image/png")) for k in range(3)]
         with ThreadPoolExecutor(8) as pool:
-            answers = list(pool.map(lambda _: httpx.post(f"{url}/v1/scenes", files=files, timeout=300), range(8)))
+            answers = list(pool.map(lambda _: httpx2.post(f"{url}/v1/scenes", files=files, timeout=300), range(8)))
         peak = _memory(server.pid)["VmHWM"]
     finally:
         os.killpg(server.pid, signal.SIGKILL)
@@ -139,7 +139,7 @@ def test_uploads_waiting_for_decode_memory_never_hold_up_probes_and_status(tmp_p
     port = server.servers[0].sockets[0].getsockname()[1]
     files = [("images", (f"s{k}.png", _flat_png(96, 72), "image/png")) for k in range(3)]
     try:
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=120) as client, ThreadPoolExecutor(48) as pool:
+        with httpx2.Client(base_url=f"http://127.0.0.1:{port}", timeout=120) as client, ThreadPoolExecutor(48) as pool:
             sid = client.post("/v1/scenes", files=files).json()["id"]
             with budget.reserve(budget.capacity):  # every decode now waits
                 uploads = [pool.submit(client.post, "/v1/scenes", files=files) for _ in range(48)]

@@ -22,7 +22,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-import httpx
+import httpx2
 import numpy as np
 import pytest
 import uvicorn
@@ -445,7 +445,7 @@ def test_renders_never_hold_up_probes_and_status(api, monkeypatch) -> None:
         return drawn(self, *args, **kwargs)
 
     monkeypatch.setattr(BakedScene, "render", slow_render)
-    with live_server(app) as port, httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=60) as client:
+    with live_server(app) as port, httpx2.Client(base_url=f"http://127.0.0.1:{port}", timeout=60) as client:
         assert client.post(f"/v1/scenes/{sid}/render", json=camera).status_code == 200  # loads the scene
         with ThreadPoolExecutor(48) as pool:
             renders = [pool.submit(client.post, f"/v1/scenes/{sid}/render", json=camera) for _ in range(48)]
@@ -734,14 +734,14 @@ def quota_app(tmp: Path, limiter=None, queue=None, **limits):
     return app
 
 
-def rate_fields(r: httpx.Response) -> tuple[str, str, str] | None:
+def rate_fields(r: httpx2.Response) -> tuple[str, str, str] | None:
     """(RateLimit-Limit, -Remaining, -Reset) of an answer, or None when it has none."""
     if "ratelimit-limit" not in r.headers:
         return None
     return r.headers["ratelimit-limit"], r.headers["ratelimit-remaining"], r.headers["ratelimit-reset"]
 
 
-def assert_refused(r: httpx.Response, code: str, limit: str, maximum: int, retry_after: int) -> None:
+def assert_refused(r: httpx2.Response, code: str, limit: str, maximum: int, retry_after: int) -> None:
     assert r.status_code == 429, r.text
     assert r.json()["error"] == {
         "code": code,
@@ -863,7 +863,7 @@ def test_quota_in_redis_holds_across_api_replicas(tmp_path: Path, redis_prefix: 
     parts, _, _ = synthetic_upload()
     camera = {"transform_matrix": np.eye(4).tolist(), "fl_x": 50, "w": 8, "h": 8}
     with live_server(replicas[0]) as port_a, live_server(replicas[1]) as port_b:
-        clients = [httpx.Client(base_url=f"http://127.0.0.1:{p}", headers=KEY_A, timeout=30) for p in (port_a, port_b)]
+        clients = [httpx2.Client(base_url=f"http://127.0.0.1:{p}", headers=KEY_A, timeout=30) for p in (port_a, port_b)]
         # six uploads at once, three to each replica: exactly two jobs are made
         with ThreadPoolExecutor(6) as pool:
             answers = list(pool.map(lambda k: clients[k % 2].post("/v1/scenes", files=parts), range(6)))
@@ -1074,7 +1074,7 @@ class ServeProcess:
         self.log = data_dir.parent / f"{data_dir.name}.log"
         with open(self.log, "ab") as log:
             self.proc = subprocess.Popen([*args, "--port", self.url.rsplit(":", 1)[1]], env=env, stdout=log, stderr=log)
-        self.wait(lambda: httpx.get(f"{self.url}/healthz").status_code == 200, "start")
+        self.wait(lambda: httpx2.get(f"{self.url}/healthz").status_code == 200, "start")
 
     def wait(self, ready, what: str, timeout: float = 240):
         t0 = time.time()
@@ -1083,13 +1083,13 @@ class ServeProcess:
             try:
                 if result := ready():
                     return result
-            except httpx.HTTPError:
+            except httpx2.HTTPError:
                 pass
             time.sleep(0.2)
         raise AssertionError(f"cmc serve: no {what} after {timeout} s:\n{self.log.read_text()[-3000:]}")
 
     def status(self, scene_id: str) -> dict:
-        return httpx.get(f"{self.url}/v1/scenes/{scene_id}").json()
+        return httpx2.get(f"{self.url}/v1/scenes/{scene_id}").json()
 
     def terminate(self) -> None:
         self.proc.send_signal(signal.SIGTERM)
@@ -1107,10 +1107,10 @@ def test_sigterm_after_pose_estimation_checkpoints_and_resumes(tmp_path: Path) -
     server = ServeProcess(data)
     try:
         grey = [("images", (f"IMG_{i}.png", png(np.full((72, 96, 3), 0.4)), "image/png")) for i in range(3)]
-        sfm = httpx.post(f"{server.url}/v1/scenes", files=grey).json()["id"]  # no cameras: runs SfM
+        sfm = httpx2.post(f"{server.url}/v1/scenes", files=grey).json()["id"]  # no cameras: runs SfM
         assert server.wait(lambda: server.status(sfm)["status"] == "failed", "pose estimation")
         parts, _, _ = synthetic_upload(steps=5000)
-        sid = httpx.post(f"{server.url}/v1/scenes", files=parts).json()["id"]
+        sid = httpx2.post(f"{server.url}/v1/scenes", files=parts).json()["id"]
         server.wait(lambda: server.status(sid)["status"] == "training" and server.status(sid)["progress"] > 0, "steps")
     finally:
         server.terminate()  # uvicorn stops gracefully, then exits by re-raising the signal

@@ -29,7 +29,7 @@ import time
 import uuid
 from pathlib import Path
 
-import httpx
+import httpx2
 import numpy as np
 import pytest
 import yaml
@@ -106,9 +106,9 @@ class Deployment:
         t0 = time.time()
         while time.time() - t0 < 60:
             try:
-                if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
+                if httpx2.get(f"{self.url}/readyz", timeout=2).status_code == 200:
                     return
-            except httpx.HTTPError:
+            except httpx2.HTTPError:
                 pass
             time.sleep(0.3)
         raise AssertionError(f"API did not become ready:\n{self.log('api')}")
@@ -165,7 +165,7 @@ class Deployment:
         return "\n".join((self.logs / f"{name}.log").read_text(errors="replace").splitlines()[-40:])
 
     def status(self, sid: str) -> dict:
-        return httpx.get(f"{self.url}/v1/scenes/{sid}", headers=self.headers, timeout=10).json()
+        return httpx2.get(f"{self.url}/v1/scenes/{sid}", headers=self.headers, timeout=10).json()
 
     def wait(self, sid: str, until, timeout: float) -> dict:
         t0 = time.time()
@@ -201,7 +201,7 @@ def test_upload_poll_render_and_depth_across_processes(deployment: Deployment) -
     d = deployment
     d.start_all()
     parts, _, novel = synthetic_upload(steps=25)
-    r = httpx.post(f"{d.url}/v1/scenes", files=parts, headers=d.headers, timeout=30)
+    r = httpx2.post(f"{d.url}/v1/scenes", files=parts, headers=d.headers, timeout=30)
     assert r.status_code == 202, r.text
     # counted in Redis by the deployed API: 1 of its 4 unfinished jobs (the limit closest to refusing)
     assert (r.headers["ratelimit-limit"], r.headers["ratelimit-remaining"]) == ("4", "3")
@@ -210,12 +210,12 @@ def test_upload_poll_render_and_depth_across_processes(deployment: Deployment) -
     body = d.wait(sid, lambda b: seen.add(b["status"]) or b["status"] in ("ready", "failed"), timeout=400)
     assert body["status"] == "ready", body
     assert "training" in seen
-    render = httpx.post(f"{d.url}/v1/scenes/{sid}/render", json=render_body(novel), headers=d.headers, timeout=60)
+    render = httpx2.post(f"{d.url}/v1/scenes/{sid}/render", json=render_body(novel), headers=d.headers, timeout=60)
     assert render.status_code == 200 and render.headers["ratelimit-limit"] == "10"
     gt_rgb, gt_depth = render_layers(DEFAULT_LAYERS, novel)
     rgb = np.asarray(Image.open(io.BytesIO(render.content)).convert("RGB"), dtype=np.float32) / 255
     assert psnr(rgb, gt_rgb[0]) > 25.0  # as in test_service_api (untrained: 23.5 dB, depth 29 %)
-    depth_r = httpx.post(
+    depth_r = httpx2.post(
         f"{d.url}/v1/scenes/{sid}/depth",
         json=render_body(novel),
         headers={**d.headers, "Accept": "application/x-npy"},
@@ -223,7 +223,7 @@ def test_upload_poll_render_and_depth_across_processes(deployment: Deployment) -
     )
     depth = np.load(io.BytesIO(depth_r.content))
     assert np.median(np.abs(depth - gt_depth[0]) / gt_depth[0]) < 0.18
-    metrics = httpx.get(f"{d.url}/metrics", timeout=10).text
+    metrics = httpx2.get(f"{d.url}/metrics", timeout=10).text
     assert 'cmc_jobs{status="ready"} 1.0' in metrics
     assert f'cmc_queue_depth{{queue="{d.env["CMC_GPU_QUEUE"]}"}} 0.0' in metrics
     # the queues are separate: poses ran on the CPU worker only, training on the GPU worker only
@@ -253,7 +253,7 @@ def test_killed_worker_is_resumed_from_its_checkpoint(deployment: Deployment, st
 
     d.start_all()
     parts, _, _ = synthetic_upload(steps=40)
-    sid = httpx.post(f"{d.url}/v1/scenes", files=parts, headers=d.headers, timeout=30).json()["id"]
+    sid = httpx2.post(f"{d.url}/v1/scenes", files=parts, headers=d.headers, timeout=30).json()["id"]
     d.wait(sid, lambda b: b["status"] == "training" and b["progress"] >= 0.3 and stored(sid), timeout=300)
     d.kill("gpu")
     killed_at = d.status(sid)["progress"]
@@ -294,7 +294,7 @@ def test_docker_stop_of_the_gpu_worker_checkpoints_and_hands_the_job_on(deployme
     d.env.update(CMC_CHECKPOINT_EVERY="100000", CMC_CHECKPOINT_SECONDS="3600")
     d.start_all()
     parts, _, _ = synthetic_upload(steps=3000)
-    sid = httpx.post(f"{d.url}/v1/scenes", files=parts, headers=d.headers, timeout=30).json()["id"]
+    sid = httpx2.post(f"{d.url}/v1/scenes", files=parts, headers=d.headers, timeout=30).json()["id"]
     ckpt = Path(d.env["CMC_STORAGE_DIR"]) / sid / "checkpoint.pt"
     d.wait(sid, lambda b: b["status"] == "training" and b["progress"] > 0.005, timeout=300)
     assert not ckpt.exists()
@@ -333,7 +333,7 @@ def test_api_stopped_mid_upload_leaves_nothing(deployment: Deployment) -> None:
     that timeout existed, Docker's SIGKILL left them in the API's working folder."""
     deployment.start_api()
     parts, _, _ = synthetic_upload(width=160, height=120)
-    request = httpx.Request("POST", f"{deployment.url}/v1/scenes", files=parts, headers=deployment.headers)
+    request = httpx2.Request("POST", f"{deployment.url}/v1/scenes", files=parts, headers=deployment.headers)
     body = request.read()
     head = "".join(f"{k}: {v}\r\n" for k, v in request.headers.items() if k.lower() != "host")
     sock = socket.create_connection(("127.0.0.1", deployment.port), timeout=60)
@@ -363,5 +363,5 @@ def test_api_stopped_mid_upload_leaves_nothing(deployment: Deployment) -> None:
     assert not scenes, f"left in storage: {scenes}"
     deployment.procs.pop("api")
     deployment.start_api()
-    listed = httpx.get(f"{deployment.url}/v1/scenes", headers=deployment.headers, timeout=10).json()["items"]
+    listed = httpx2.get(f"{deployment.url}/v1/scenes", headers=deployment.headers, timeout=10).json()["items"]
     assert listed == [], listed
