@@ -15,7 +15,7 @@ import numpy as np
 from cmc.errors import PoseEstimationError
 from cmc.geometry.cameras import nearest_rotation
 from cmc.poses.colmap import import_pycolmap, world_from_cam
-from cmc.poses.intake import sift_peak_threshold
+from cmc.poses.intake import sift_options
 from cmc.poses.options import SparsePoints
 
 
@@ -141,13 +141,11 @@ def register_camera(
 def sift_features(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """SIFT keypoints [M, 2] (cmc pixel convention, as COLMAP's) and unit descriptors [M, 128] of an
     [H, W, 3] image in [0, 1], as :mod:`cmc.poses` extracts them from a photo of that size (8-bit
-    grey, the contrast threshold of :func:`~cmc.poses.intake.sift_peak_threshold`)."""
+    grey, :func:`~cmc.poses.intake.sift_options`)."""
     pycolmap = import_pycolmap()
     image = np.asarray(image, np.float32)
     grey = np.clip(np.rint(image @ np.array([0.299, 0.587, 0.114], np.float32) * 255), 0, 255).astype(np.uint8)
-    options = pycolmap.FeatureExtractionOptions()
-    options.max_image_size = max(grey.shape)
-    options.sift.peak_threshold = sift_peak_threshold(max(grey.shape), options.sift.peak_threshold)
+    options = sift_options(pycolmap, max(grey.shape), max(grey.shape))
     extractor = pycolmap.FeatureExtractor.create(options, pycolmap.Device.cpu)
     keypoints, descriptors = extractor.extract_from_uint8_array(np.ascontiguousarray(grey))
     xy = np.array([[k.x, k.y] for k in keypoints], np.float64).reshape(-1, 2)

@@ -187,9 +187,7 @@ def features_and_matches(
     file_names = [p.name for p in photos.sfm_paths]
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = SFM_CAMERA_MODEL
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.max_image_size = max_sift_size
-    extraction.sift.peak_threshold = sift_peak_threshold(max(photos.sfm_size), extraction.sift.peak_threshold)
+    extraction = sift_options(pycolmap, max_sift_size, max(photos.sfm_size))
     mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
     with stage(timings, "features"), cancel.running():
         pycolmap.Database.open(database).close()
@@ -235,6 +233,16 @@ def features_and_matches(
 
 
 SIFT_FULL_SIZE = 1600  # long side (pixels) COLMAP's default SIFT peak threshold suits
+
+
+def sift_options(pycolmap: Any, max_image_size: int, long_side: int) -> Any:
+    """pycolmap's feature extraction options as cmc extracts SIFT from photos of ``long_side``
+    pixels, scaled down to at most ``max_image_size``: COLMAP's defaults with the contrast
+    threshold of :func:`sift_peak_threshold`."""
+    options = pycolmap.FeatureExtractionOptions()
+    options.max_image_size = max_image_size
+    options.sift.peak_threshold = sift_peak_threshold(long_side, options.sift.peak_threshold)
+    return options
 
 
 def sift_peak_threshold(long_side: int, default: float) -> float:
