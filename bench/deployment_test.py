@@ -48,6 +48,8 @@ import boto3
 import httpx2
 from servers import free_port  # bench/servers.py: this script runs as python bench/deployment_test.py
 
+from cmc.eval.bench import git_commit, machine_info
+
 ROOT = Path(__file__).resolve().parents[1]
 PROJECT = "cmc-deploytest"
 PHOTOS = ("IMG_4027.JPG", "IMG_4036.JPG", "IMG_4045.JPG")
@@ -548,6 +550,8 @@ def main() -> int:
                 "command": " ".join(["python", "bench/deployment_test.py", *sys.argv[1:]]),
                 "date": datetime.now(UTC).strftime("%Y-%m-%d"),
                 "host": f"{os.cpu_count()} cores, {'NVIDIA GPU' if gpu else 'no GPU: training on the CPU'}",
+                "machine": machine_info(),
+                "git_commit": git_commit(),
                 "compose": " ".join(compose),
                 "settings": {"short_job": SHORT, "long_job": LONG},
                 "measured": report.measured,
