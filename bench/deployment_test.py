@@ -10,8 +10,9 @@ not ignored files) with a throw-away ``.env`` (random secrets, free ports), as t
 ``--offline-docker`` is for a host without an image registry (these machines): its stand-ins for
 Redis, PostgreSQL and MinIO, its local CPU torch index for the build, its compose v1 wrapper.
 Test-only settings (``docker-compose.deploytest.yml``, written into the copy): webhooks may go to
-a receiver on this host's Docker network. The report (times per stage, image sizes, build time,
-every check) goes to ``--out`` (default bench/reports/current/deployment_test.json).
+a receiver on this host's Docker network. The report (the commit and machine, times per stage,
+image sizes, build time, every check) goes to ``--out`` (default
+bench/reports/current/deployment_test.json).
 
 Checks, in order: every healthcheck; one job through the API (three fern JPEGs, a short training):
 status stages, cameras, camera path, render, depth, viewer, MPI atlas and glb through presigned
