@@ -320,8 +320,8 @@ def service() -> list[str]:
         out += [
             "## Deployment: docker-compose.yml's stack started from its images",
             "",
-            f"`{d['command']}` ({d.get('git_commit', '?')}, {d['date']}, {d['host']}): {passed} of"
-            f" {len(d['checks'])} checks passed; a",
+            f"`{d['command']}` ({d['git_commit']}, {d['date']}, {d['host']}): {passed} of {len(d['checks'])}"
+            " checks passed; a",
             f"{d['settings']['short_job']['steps']}-step job at {d['settings']['short_job']['resolution']} px"
             f" {m['job_seconds']:.0f} s ({stages}); first render {m['render_ms']['first']} ms (torch imported and"
             " the scene loaded from the bucket), then",
