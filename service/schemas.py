@@ -6,6 +6,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from cmc.config import Preset, preset_config
 from service.db.rows import Status
 from service.errors import ErrorCode
 
@@ -15,10 +16,10 @@ class SceneOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    preset: Literal["fast", "paper"] = Field(
+    preset: Preset = Field(
         "fast",
-        description="fast: 300 steps, under 3 minutes on 2 CPU cores; paper: the paper's MLP, "
-        "20000 steps, about 30 minutes on an H100",
+        description=f"fast: {preset_config('fast').steps} steps, under 3 minutes on 2 CPU cores; paper: the "
+        f"paper's MLP, {preset_config('paper').steps} steps, about 30 minutes on an H100",
     )
     steps: int | None = Field(None, ge=1, description="training steps (default: the preset's)")
     resolution: int = Field(504, ge=64, le=2016, description="long side of the working images, pixels")

@@ -1,8 +1,10 @@
 """The import rules between the three packages: ``cmc`` (the library) imports neither ``service``
 nor ``worker``; ``service`` imports ``worker`` only in ``service/serve.py`` (the process entry that
-injects the embedded runner), never in ``create_app``. Checked on the source and in a fresh
-interpreter, so a lazy import inside a function counts too; and no module imports itself through
-others (an import circle)."""
+injects the embedded runner), never in ``create_app``; and the API does not load torch (its
+processes do not pay torch's import time and memory; ``cmc.config``, where the upload schema
+reads the presets, is torch-free). Checked on the source and in a fresh interpreter, so a lazy
+import inside a function counts too; and no module imports itself through others (an import
+circle)."""
 
 from __future__ import annotations
 
@@ -49,7 +51,7 @@ def test_importing_the_library_loads_no_service_code() -> None:
     assert not {m for m in loaded if m.split(".")[0] in ("service", "worker")}
 
 
-def test_create_app_loads_no_worker_code(tmp_path: Path) -> None:
+def test_create_app_loads_no_worker_code_and_no_torch(tmp_path: Path) -> None:
     loaded = _modules_after(
         "import sys\n"
         "from service.app import create_app\n"
@@ -63,6 +65,7 @@ def test_create_app_loads_no_worker_code(tmp_path: Path) -> None:
     )
     assert "service.app" in loaded and "service.api.views" in loaded
     assert not {m for m in loaded if m.split(".")[0] == "worker"}
+    assert "cmc.config" in loaded and "torch" not in loaded
 
 
 def _module_name(path: Path) -> str:
@@ -145,10 +148,10 @@ def test_the_circle_finder_finds_a_circle() -> None:
 # the rooms before it.
 CMC_ROOMS = [
     ["errors", "kernel_cache"],
+    ["config"],
     ["geometry"],
     ["data"],
     ["poses", "mpi"],
-    ["config"],
     ["method"],
     ["serving"],
     ["eval"],

@@ -5,8 +5,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from cmc.config import PyramidFieldConfig
 from cmc.mpi import plane_sampling
-from cmc.mpi.fields import PyramidFieldConfig, PyramidPlaneField
+from cmc.mpi.fields import PyramidPlaneField
 
 
 def _grid_sample_sum(grid, plane_texture, textures, mode):

@@ -10,12 +10,13 @@ import pytest
 import torch
 from helpers import apply_homography, rigid, rotation
 
+from cmc.config import MLPFieldConfig, PyramidFieldConfig
 from cmc.errors import ConfigError
 from cmc.eval.metrics import psnr
 from cmc.geometry.cameras import intrinsics
 from cmc.geometry.planes import homographies_ref_from_tgt, pixel_centers, plane_depths
 from cmc.mpi._reference import render_rays_reference, render_texture_image_reference
-from cmc.mpi.fields import MLPField, MLPFieldConfig, PyramidFieldConfig, PyramidPlaneField, TextureField
+from cmc.mpi.fields import MLPField, PyramidPlaneField, TextureField
 from cmc.mpi.rendering import (
     MPIFrame,
     composite,

@@ -27,13 +27,12 @@ composited.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Literal
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from cmc.config import MLPFieldConfig, PyramidFieldConfig
 from cmc.errors import ConfigError
 from cmc.mpi import plane_sampling
 
@@ -86,16 +85,6 @@ def positional_encoding(x: torch.Tensor, num_freqs: int) -> torch.Tensor:
     return torch.cat([torch.sin(xf), torch.cos(xf)], dim=-1).flatten(-2)
 
 
-@dataclass
-class MLPFieldConfig:
-    """The paper's MLP (Sec. 5.1)."""
-
-    width: int = 256  # hidden units per layer
-    depth: int = 6  # hidden layers
-    pe_freqs: int = 10  # positional-encoding frequencies L for the point
-    leaky_slope: float = 0.01
-
-
 class MLPField(MPIField):
     """F_i(gamma(x), d) -> (rgb, alpha) with x = (g_x, g_y, plane_z) and d the raw direction."""
 
@@ -116,27 +105,6 @@ class MLPField(MPIField):
         feats = torch.cat([positional_encoding(x, self.cfg.pe_freqs), dirs[:, None].expand(R, D, 3)], dim=-1)
         out = self.mlp(feats)
         return torch.sigmoid(out[..., :3]), _opaque_back(torch.sigmoid(out[..., 3]))
-
-
-@dataclass
-class PyramidFieldConfig:
-    """Explicit multi-resolution plane textures and how the plane sweep starts them (defaults:
-    the ``fast`` preset's)."""
-
-    scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane alpha levels
-    # Per-plane colour residual levels, added to the base colour of the plane's group.
-    colour_scales: tuple[float, ...] = (0.25, 0.125, 0.0625)
-    base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
-    base_groups: int = 8  # base colours: one per group of adjacent planes (CMCModel: at most one per plane)
-    # How rays sample the base colours: "bilinear", or "bicubic" (a sharper reconstruction: a
-    # texture seen at another sub-texel phase than it was fitted at keeps its detail; the bake
-    # records it and the renderers sample the baked colour the same way, see cmc.serving.baking).
-    base_interpolation: Literal["bilinear", "bicubic"] = "bicubic"
-    init_from_sweep: bool = True  # start alpha from the plane sweep (cmc.method.planesweep, ModelConfig.sweep)
-    # True: the base colours of the groups behind each texel's visible surface (the sweep's most
-    # probable plane) start as the background continued from nearby (cmc.method.model.hidden_layer_colours);
-    # False: every group starts as the reference photo.
-    hidden_colour_everywhere: bool = True
 
 
 def plane_group_bounds(num_planes: int, groups: int) -> list[int]:
