@@ -1,7 +1,7 @@
 """The import rules between the three packages: ``cmc`` (the library) imports neither ``service``
 nor ``worker``; ``service`` imports ``worker`` only in ``service/serve.py`` (the process entry that
-injects the embedded runner), never in ``create_app``; and the API does not load torch (its
-processes do not pay torch's import time and memory; ``cmc.config``, where the upload schema
+injects the embedded runner), never in ``create_app``; and ``create_app`` loads no torch (the
+API loads it on its first render only, README "API"; ``cmc.config``, where the upload schema
 reads the presets, is torch-free). Checked on the source and in a fresh interpreter, so a lazy
 import inside a function counts too; and no module imports itself through others (an import
 circle)."""
