@@ -12,8 +12,8 @@ from typing import Any, Literal, get_type_hints
 
 from cmc.errors import ConfigError
 
-Preset = Literal["paper", "fast"]
-PRESETS: tuple[Preset, ...] = ("paper", "fast")
+Preset = Literal["fast", "paper"]
+PRESETS: tuple[Preset, ...] = ("fast", "paper")
 
 
 @dataclass

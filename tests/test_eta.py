@@ -10,11 +10,9 @@ import pytest
 from helpers import finished_job
 
 import cmc.method.training
-from cmc.config import PRESETS, preset_config
+from cmc.config import preset_config
 from cmc.data.datasets import synthetic_scene
 from cmc.method.eta import (
-    FAST_INPUT_RAYS_PER_MPI,
-    PRESET_STEPS,
     REFERENCE_POSES_S,
     REFERENCE_STEP_S,
     TrainingETA,
@@ -278,11 +276,6 @@ def test_cost_model_follows_the_config() -> None:
     assert final_bake_s(7.0, 1.5, 12.0) == final_bake_s(7.0, 0.06, 12.0) == 12.0  # the preview's measured bake
 
 
-def test_preset_steps_match_the_presets() -> None:
-    assert PRESET_STEPS == {name: preset_config(name).steps for name in PRESETS}
-    assert FAST_INPUT_RAYS_PER_MPI == input_rays_per_mpi(preset_config("fast"), 3)
-
-
 def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) -> None:
     """worker.pipeline.JobPace: before a job has measured anything, its stages take what the
     latest ready job of its kind measured (the same size limit; the same preset for training, the
@@ -316,7 +309,7 @@ def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) ->
     pace = JobPace.of(store, new)
     assert pace == JobPace(5.0, 0.3, 8.0, 5.0, 1.0, 1.5, 1.5)
     assert pace.training_s(fast) == pytest.approx(8.0 + 100 * 0.3 + 6.0)
-    assert pace.training_s({**fast, "steps": None}) == pytest.approx(8.0 + PRESET_STEPS["fast"] * 0.3 + 6.0)
+    assert pace.training_s({**fast, "steps": None}) == pytest.approx(8.0 + preset_config("fast").steps * 0.3 + 6.0)
 
     finished_job(store, fast, {**measured, "poses": {"seconds": 7.0}}, has_cameras=True)  # the app's cameras
     assert JobPace.of(store, new).poses_s == 5.0

@@ -68,6 +68,12 @@ def test_create_app_loads_no_worker_code_and_no_torch(tmp_path: Path) -> None:
     assert "cmc.config" in loaded and "torch" not in loaded
 
 
+def test_the_eta_and_the_presets_load_no_torch() -> None:
+    """The API's status answers estimate with ``cmc.method.eta`` and the presets' step counts."""
+    loaded = _modules_after("import sys, cmc.method.eta, cmc.config\nprint(*sys.modules)")
+    assert "cmc.method.eta" in loaded and "torch" not in loaded
+
+
 def _module_name(path: Path) -> str:
     parts = list(path.relative_to(ROOT).with_suffix("").parts)
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)

@@ -266,9 +266,10 @@ class JobPace:
 
     def training_s(self, options: dict[str, Any]) -> float:
         """Seconds of the model build, training and baking (a preview too) for a job with ``options``."""
-        from cmc.method.eta import PRESET_STEPS, reference_training_s
+        from cmc.config import preset_config
+        from cmc.method.eta import reference_training_s
 
-        steps = options.get("steps") or PRESET_STEPS[options["preset"]]
+        steps = options.get("steps") or preset_config(options["preset"]).steps
         if self.build_s is None or self.bake_s is None:
             return reference_training_s(steps, self.step_s)
         return self.build_s + steps * self.step_s + self.bake_s + (self.preview_bake_s or 0.0)

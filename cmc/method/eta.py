@@ -31,18 +31,11 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
-    from cmc.config import TrainConfig
+from cmc.config import TrainConfig, preset_config
 
 REFERENCE_POSES_S = 12.7
 REFERENCE_STEP_S = 0.42
-# TrainConfig.steps of each preset and the input rays each MPI of the fast preset renders a step
-# from three photos (input_rays_per_mpi; cmc.config.preset_config needs torch to import, the
-# pose-estimation worker does not load it). tests/test_eta.py checks that they agree.
-PRESET_STEPS = {"fast": 300, "paper": 20000}
-FAST_INPUT_RAYS_PER_MPI = 12288
 
 
 def first_full_step(cfg: TrainConfig) -> int:
@@ -111,7 +104,8 @@ def final_bake_s(bake_cost: float, step_s: float, measured_s: float | None = Non
 def reference_training_s(steps: int, step_s: float = REFERENCE_STEP_S) -> float:
     """Seconds to build the model, train ``steps`` steps and bake, as the reference (fern,
     ``fast``) counts them in training steps, at ``step_s`` seconds a step."""
-    return (build_steps(504, 378) + steps + bake_steps(504, 378, 1.2, FAST_INPUT_RAYS_PER_MPI)) * step_s
+    bake = bake_steps(504, 378, 1.2, input_rays_per_mpi(preset_config("fast"), 3))
+    return (build_steps(504, 378) + steps + bake) * step_s
 
 
 def checkpoints_to_come(
