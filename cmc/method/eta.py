@@ -104,7 +104,8 @@ def final_bake_s(bake_cost: float, step_s: float, measured_s: float | None = Non
 def reference_training_s(steps: int, step_s: float = REFERENCE_STEP_S) -> float:
     """Seconds to build the model, train ``steps`` steps and bake, as the reference (fern,
     ``fast``) counts them in training steps, at ``step_s`` seconds a step."""
-    bake = bake_steps(504, 378, 1.2, input_rays_per_mpi(preset_config("fast"), 3))
+    fast = preset_config("fast")
+    bake = bake_steps(504, 378, fast.model.margin, input_rays_per_mpi(fast, 3))
     return (build_steps(504, 378) + steps + bake) * step_s
 
 
