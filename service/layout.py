@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+PREVIEW_PREFIX = "preview-"  # a preview's folder: this and its training step (SceneLayout.preview)
 CAMERAS_UPLOAD = "cameras.json"  # the client's cameras file among the uploads (SceneLayout.cameras_upload)
 
 
@@ -57,10 +58,16 @@ class SceneLayout:
     def manifest(self) -> str:
         return self.baked("mpi.json")
 
-    def preview(self, name: str | None = None) -> str:
-        """The preview's baked folder (a job bakes it part way through training; the same format
-        as :meth:`baked`), or the file ``name`` in it."""
-        return f"{self.scene_id}/preview" + (f"/{name}" if name else "")
+    def preview(self, step: int) -> str:
+        """The baked folder of the preview a job bakes at training step ``step`` (the same format
+        as :meth:`baked`; a later preview is another folder, so that no reader sees one replaced
+        file by file)."""
+        return f"{self.scene_id}/{PREVIEW_PREFIX}{step}"
+
+    def is_preview(self, key: str) -> bool:
+        """Whether storage key ``key`` is a preview's folder or a file in it (any step)."""
+        parts = key.split("/")
+        return len(parts) > 1 and parts[0] == self.scene_id and parts[1].startswith("preview")
 
     def export_glb(self, mpi: int) -> str:
         """The glTF export of MPI ``mpi``."""

@@ -71,6 +71,12 @@ class SceneOut(BaseModel):
         "its job baked part way through training (their Scene-Stage header says 'preview') until the final "
         "bake replaces it; false once the scene is ready (then they answer from the final bake)"
     )
+    preview_step: int | None = Field(
+        None,
+        description="the training step of the preview they answer from (null without one): a job bakes one "
+        "right after its model build and a sharper one a few steps later, each replacing the last, so a "
+        "client showing a preview reloads the MPI when this changes",
+    )
     detail: str | None = Field(description="what the job is doing, for people")
     error: JobError | None = Field(description="set when status is 'failed'")
     options: SceneOptions

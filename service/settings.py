@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import Field, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import Field, field_validator, model_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 MB = 1 << 20
 
@@ -86,12 +86,12 @@ class Settings(BaseSettings):
         description="seconds of training between checkpoints at most (besides every checkpoint_every steps): "
         "a worker killed without warning loses no more than this",
     )
-    preview_at: float = Field(
-        0.0,
-        ge=0,
-        description="share of the training steps after which a job bakes a preview (at half the texel "
-        "resolution) that render, depth, mpi and the viewer serve until the final bake replaces it (0: right "
-        "after the model build, from the plane sweep's start; 1 or more: no preview)",
+    preview_at: Annotated[list[float], NoDecode] = Field(
+        [0.0, 0.1],
+        description="shares of the training steps after which a job bakes a preview (at half the texel "
+        "resolution) that render, depth, mpi and the viewer serve until a later preview or the final bake "
+        "replaces it, comma-separated in the environment (0: right after the model build, from the plane "
+        "sweep's start; 1 or more: none; empty: no preview)",
     )
     lease_seconds: float = Field(60.0, gt=0, description="a job whose worker is silent this long is re-queued")
     heartbeat_seconds: float = Field(1.0, gt=0, description="how often a running job reports and checks cancel")
@@ -158,6 +158,23 @@ class Settings(BaseSettings):
     mode: Literal["embedded", "celery"] = Field(
         "embedded", description="embedded: jobs run in the API process; celery: sent to workers"
     )
+
+    @field_validator("preview_at", mode="before")
+    @classmethod
+    def _shares(cls, value: object) -> object:
+        """A number or a comma-separated string (the environment's form) as a list."""
+        if isinstance(value, str):
+            return [part for part in value.replace(",", " ").split()]
+        if isinstance(value, int | float):
+            return [value]
+        return value
+
+    @field_validator("preview_at")
+    @classmethod
+    def _sorted_shares(cls, shares: list[float]) -> list[float]:
+        if any(not share >= 0 for share in shares):
+            raise ValueError(f"preview shares must be >= 0, got {shares}")
+        return sorted(set(shares))
 
     @model_validator(mode="after")
     def _check(self) -> Settings:

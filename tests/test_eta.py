@@ -215,7 +215,7 @@ def test_a_jobs_eta_keeps_the_builds_pace_until_its_second_step() -> None:
     writes: list[float] = []
     phase = _TrainPhase.__new__(_TrainPhase)  # only what _on_progress reads
     phase.hb = SimpleNamespace(set=lambda **fields: writes.append(fields["eta_seconds"]))
-    phase.resumed_from, phase.preview_s, phase.preview_step, phase.stats = 0, 0.0, None, {}
+    phase.resumed_from, phase.preview_s, phase.preview_steps, phase.stats = 0, 0.0, [], {}
     phase.pace = JobPace(REFERENCE_POSES_S, REFERENCE_STEP_S)  # no earlier job: the reference's cost model
     phase.step_s, phase.bake_cost, phase.bake_s = 1.0, 7.0, 5.0  # the build's pace; the preview's bake
     phase.preview_cost, phase.build_cost = 0.25 * phase.bake_cost, 20.5
@@ -238,12 +238,16 @@ def test_a_jobs_train_phase_counts_the_build_and_bakes_as_the_latest_job_measure
 
     phase = _TrainPhase.__new__(_TrainPhase)
     phase.pace = JobPace(5.0, step_s=0.05, build_s=6.0, bake_s=8.0, preview_bake_s=2.0)  # a GPU worker's
-    phase.step_s, phase.bake_s, phase.stats, phase.preview_step = 0.05, None, {}, 0
+    phase.step_s, phase.bake_s, phase.stats, phase.preview_steps = 0.05, None, {}, [0, 30]
     phase.bake_cost, phase.preview_cost, phase.build_cost = 15.7, 15.7 / 4, 20.5
-    assert phase._eta(300, built=False) == pytest.approx(6.0 + 300 * 0.05 + 8.0 + 2.0)
+    # two previews to come, each as that job's preview bake
+    assert phase._eta(300, built=False) == pytest.approx(6.0 + 300 * 0.05 + 8.0 + 2 * 2.0)
     assert phase.pace.step_s_from_build(9.0, 504, 378) == pytest.approx(0.075)  # a build 1.5x slower
+    phase.preview_steps = [30]  # the first baked: one to come
     phase.stats["preview"], phase.bake_s = {"bake_seconds": 1.5}, phase.pace.final_bake_from_preview(1.5)
-    assert phase._eta(300) == pytest.approx(300 * 0.05 + 8.0)  # the preview baked: the final bake to come
+    assert phase._eta(300) == pytest.approx(300 * 0.05 + 8.0 + 2.0)
+    phase.preview_steps = []  # both baked: the final bake to come
+    assert phase._eta(300) == pytest.approx(300 * 0.05 + 8.0)
     assert JobPace(5.0, 0.05).final_bake_from_preview(1.5) == pytest.approx(1.5 / PREVIEW_TEXEL_SCALE**2)
 
 
@@ -310,6 +314,7 @@ def test_a_jobs_first_estimate_is_the_latest_ready_jobs_of_its_kind(tmp_path) ->
     assert pace == JobPace(5.0, 0.3, 8.0, 5.0, 1.0, 1.5, 1.5)
     assert pace.training_s(fast) == pytest.approx(8.0 + 100 * 0.3 + 6.0)
     assert pace.training_s({**fast, "steps": None}) == pytest.approx(8.0 + preset_config("fast").steps * 0.3 + 6.0)
+    assert pace.training_s(fast, previews=2) == pytest.approx(8.0 + 100 * 0.3 + 5.0 + 2 * 1.0)  # each as measured
 
     finished_job(store, fast, {**measured, "poses": {"seconds": 7.0}}, has_cameras=True)  # the app's cameras
     assert JobPace.of(store, new).poses_s == 5.0

@@ -1009,14 +1009,15 @@ def test_unusable_checkpoint_trains_from_step_zero(tmp_path: Path, monkeypatch: 
     assert rec.stats["train"]["build_seconds"] == pytest.approx(builds[1], abs=0.05)
 
 
-def test_preview_is_served_while_training_then_the_final_bake(tmp_path: Path) -> None:
-    """A job bakes a preview after ``preview_at`` of its steps (at half the texel resolution);
-    render, depth and mpi answer from it
-    (``Scene-Stage: preview``) while the scene trains, and at once after a restart mid-training (a
-    crash between preview and final: the preview survives, the job resumes); once ready they
-    answer from the final bake and the preview is gone from storage."""
+def test_previews_are_served_while_training_then_the_final_bake(tmp_path: Path) -> None:
+    """A job bakes a preview after each share ``preview_at`` of its steps (at half the texel
+    resolution), each in a folder of its own that replaces the last; render, depth and mpi answer
+    from the latest (``Scene-Stage: preview``, its step in the status) while the scene trains, and
+    at once after a restart mid-training (a crash between preview and final: the preview
+    survives, the job resumes); once ready they answer from the final bake and no preview is left
+    in storage."""
     parts, _, novel = synthetic_upload(steps=100)
-    settings = settings_for(tmp_path, checkpoint_every=5, preview_at=0.2)
+    settings = settings_for(tmp_path, checkpoint_every=5, preview_at="0.2,0.4")
     gt_rgb, _ = render_layers(DEFAULT_LAYERS, novel)
 
     def render(client: TestClient, sid: str) -> tuple[str, float]:
@@ -1025,12 +1026,18 @@ def test_preview_is_served_while_training_then_the_final_bake(tmp_path: Path) ->
         rgb = np.asarray(Image.open(io.BytesIO(r.content)).convert("RGB"), dtype=np.float32) / 255
         return r.headers["scene-stage"], psnr(rgb, gt_rgb[0])
 
+    def preview_files(sid: str) -> dict[str, int]:
+        """Files in each preview folder of the scene in storage."""
+        folders = (tmp_path / "storage" / sid).glob("preview*")
+        return {p.name: sum(f.is_file() for f in p.rglob("*")) for p in folders}
+
     refused_before_preview = False
     with TestClient(create_app(settings)) as client:
         sid = client.post("/v1/scenes", files=parts).json()["id"]
         t0 = time.time()
         while not (body := client.get(f"/v1/scenes/{sid}").json())["preview_ready"]:
             assert body["status"] not in ("ready", "failed") and time.time() - t0 < 180, body
+            assert body["preview_step"] is None
             if body["status"] == "training" and not refused_before_preview:
                 r = client.post(f"/v1/scenes/{sid}/render", json=render_body(novel))
                 if r.status_code == 409:  # else the preview came in between: then it must be served
@@ -1039,7 +1046,7 @@ def test_preview_is_served_while_training_then_the_final_bake(tmp_path: Path) ->
                 else:
                     assert r.status_code == 200 and r.headers["scene-stage"] == "preview"
             time.sleep(0.05)
-        assert body["status"] == "training" and body["progress"] < 1
+        assert body["status"] == "training" and body["progress"] < 1 and body["preview_step"] in (20, 40)
         stage, preview_psnr = render(client, sid)
         assert stage == "preview" and preview_psnr > 22.0  # the scene, not noise (untrained: 23.5 dB)
         depth = client.post(f"/v1/scenes/{sid}/depth", json=render_body(novel))
@@ -1050,24 +1057,30 @@ def test_preview_is_served_while_training_then_the_final_bake(tmp_path: Path) ->
         assert client.get(f"/v1/scenes/{sid}/mpi/{atlas}").headers["scene-stage"] == "preview"
         assert client.get(f"/v1/scenes/{sid}/camera-path?frames=3").status_code == 200
         assert client.get(f"/v1/scenes/{sid}/export.glb").status_code == 409  # final products wait
+        while (body := client.get(f"/v1/scenes/{sid}").json())["preview_step"] != 40:  # the second replaces it
+            assert body["status"] == "training" and body["preview_step"] == 20 and time.time() - t0 < 180, body
+            time.sleep(0.05)
+        assert render(client, sid)[0] == "preview"
+        files = preview_files(sid)
+        assert files["preview-40"] > 0 and files.get("preview-20", 0) == 0, files  # the first one removed
     assert refused_before_preview
     # the app stopped mid-training (checkpointed, as after a crash): the preview is served at once
     with TestClient(create_app(settings)) as client:
         body = client.get(f"/v1/scenes/{sid}").json()
-        assert body["status"] in ("training", "baking") and body["preview_ready"], body
+        assert body["status"] in ("training", "baking") and body["preview_step"] == 40, body
         assert render(client, sid)[0] == "preview"
         body = wait_for(client, sid, ("ready", "failed"))
-        assert body["status"] == "ready" and not body["preview_ready"], body
+        assert body["status"] == "ready" and not body["preview_ready"] and body["preview_step"] is None, body
         stage, final_psnr = render(client, sid)
         assert stage == "final" and final_psnr > 25.0
         final_tile = client.get(f"/v1/scenes/{sid}/mpi").json()["mpis"][0]["tile"]
         assert preview_tile == [round(n * PREVIEW_TEXEL_SCALE) for n in final_tile]  # a quarter of the texels
         rec = client.app.state.services.store.get(sid)
-    assert rec.stats["preview"]["step"] == 20  # baked once, not again on resuming
-    assert rec.stats["train"]["resumed_from_step"] >= 20
-    assert not (tmp_path / "storage" / sid / "preview").exists() or not any(
-        (tmp_path / "storage" / sid / "preview").iterdir()
-    )
+    preview = rec.stats["preview"]
+    assert preview["step"] == 40  # baked once more, not again on resuming
+    assert preview["first_seconds_after_upload"] < preview["seconds_after_upload"]
+    assert rec.stats["train"]["resumed_from_step"] >= 40
+    assert not any(preview_files(sid).values())
 
 
 class ServeProcess:

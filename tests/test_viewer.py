@@ -41,7 +41,8 @@ def _browser_first(browser):
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory):
-    """A folder with viewer.html and a baked tiny synthetic scene in baked/."""
+    """A folder with viewer.html and a baked tiny synthetic scene in baked/, and two previews of
+    its planes (preview/ all white, preview30/ all black)."""
     root = tmp_path_factory.mktemp("site")
     scene = synthetic_scene(num_views=3, width=W, height=H)
     cfg = preset_config("fast", steps=10, rays_per_view=256, unseen_rays=256)
@@ -49,11 +50,12 @@ def site(tmp_path_factory):
     trainer = Trainer(scene, cfg)
     trainer.fit()
     bake(trainer.model, root / "baked")
-    bake(trainer.model, root / "preview", scale=PREVIEW_TEXEL_SCALE)  # as a job bakes its preview
-    for atlas in (root / "preview").glob("*.png"):  # the preview: the same planes, all white
-        rgba = np.asarray(Image.open(atlas)).copy()
-        rgba[..., :3] = 255
-        Image.fromarray(rgba, "RGBA").save(atlas)
+    for folder, colour in (("preview", 255), ("preview30", 0)):
+        bake(trainer.model, root / folder, scale=PREVIEW_TEXEL_SCALE)  # as a job bakes its previews
+        for atlas in (root / folder).glob("*.png"):  # the same planes, of one colour
+            rgba = np.asarray(Image.open(atlas)).copy()
+            rgba[..., :3] = colour
+            Image.fromarray(rgba, "RGBA").save(atlas)
     shutil.copy(VIEWER, root / "viewer.html")
     return root
 
@@ -228,6 +230,7 @@ class _FakeAPI(BaseHTTPRequestHandler):
                 "id": "p1",
                 "status": "ready" if ready else "training",
                 "preview_ready": not ready,
+                "preview_step": None if ready else 0 if self.polls == 1 else 30,
                 "progress": 1.0 if ready else 0.5,
                 "eta_seconds": 0.0 if ready else 30.0,
                 "error": None,
@@ -244,7 +247,9 @@ class _FakeAPI(BaseHTTPRequestHandler):
             return self._send(200, json.dumps(status).encode(), "application/json")
         scene, _, name = self.path.removeprefix("/v1/scenes/").partition("/mpi/")
         if scene in ("s1", "p1") and name and "/" not in name:
-            folder = "preview" if scene == "p1" and self.polls <= 3 else "baked"
+            folder = "baked"
+            if scene == "p1" and self.polls <= 3:
+                folder = "preview" if self.polls == 1 else "preview30"
             f = self.site / folder / name
             if f.is_file():
                 return self._send(200, f.read_bytes(), "application/json" if f.suffix == ".json" else "image/png")
@@ -272,22 +277,25 @@ def test_api_mode_shows_training_progress_then_the_scene(api_url, page):
 
 
 def test_api_mode_shows_a_preview_then_swaps_in_the_final_scene(api_url, page):
-    """A scene whose job published a preview is shown at once, marked as a preview; when the scene
-    is ready the viewer loads the final bake in its place, from the same camera."""
+    """A scene whose job published a preview is shown at once, marked as a preview; a later
+    preview (the status' preview_step changed) replaces it, and when the scene is ready the
+    viewer loads the final bake in its place, each from the same camera."""
     url, api = api_url
     page.goto(f"{url}/viewer.html?scene=p1#key={api.key}")
     _wait_ready(page)
-    assert page.evaluate("() => window.cmcViewer.stage") == "preview"
+    assert page.evaluate("() => [window.cmcViewer.stage, window.cmcViewer.previewStep]") == ["preview", 0]
     assert "Preview" in page.text_content("#stage-note") and page.is_hidden("#status")
     pose = page.evaluate("() => window.cmcViewer.getCamera().world_from_cam")
-    frames = page.evaluate("() => window.cmcViewer.frames")
-    preview = _frame(page, frames)
+    preview = _frame(page, page.evaluate("() => window.cmcViewer.frames"))
+    page.wait_for_function("() => window.cmcViewer.previewStep === 30", timeout=30_000)
+    later = _frame(page, page.evaluate("() => window.cmcViewer.frames"))
+    assert page.evaluate("() => window.cmcViewer.stage") == "preview"
     page.wait_for_function("() => window.cmcViewer.stage === 'final'", timeout=30_000)
     final = _frame(page, page.evaluate("() => window.cmcViewer.frames"))
     assert page.is_hidden("#stage-note")
     assert page.evaluate("() => window.cmcViewer.getCamera().world_from_cam") == pose
-    # the preview's planes are white: the final picture is the scene's own colours
-    assert preview.mean() > 0.9 and preview.mean() - final.mean() > 0.2
+    # the first preview's planes are white, the second's black: the final picture is the scene's own colours
+    assert preview.mean() > 0.9 and later.mean() < 0.1 and 0.1 < final.mean() < preview.mean() - 0.2
 
 
 def test_api_mode_reports_a_failed_scene(api_url, page):

@@ -7,9 +7,9 @@ A job runs in two phases, each a separate task so GPU workers only train and bak
   :func:`cmc.poses.poses_from_client` when the upload came with a cameras file; writes the
   scene folder ``{id}/scene/`` and sends the ``train`` phase.
 * ``train`` (GPU queue): trains with checkpoints in ``{id}/checkpoint.pt`` (resumed when a
-  previous worker died), bakes a preview ``{id}/preview/`` (``Settings.preview_at``, at half the
-  texel resolution; the API serves it until the scene is ready, also while a resumed job trains on), bakes
-  ``{id}/baked/``, marks the scene ready and removes the preview.
+  previous worker died), bakes previews ``{id}/preview-{step}/`` (``Settings.preview_at``, at half the
+  texel resolution; the API serves the latest until the scene is ready, also while a resumed job trains
+  on), bakes ``{id}/baked/``, marks the scene ready and removes the previews.
 
 Phases work on local copies (:meth:`Storage.reading`, :meth:`Storage.writing`: the stored files
 themselves on local storage, downloads and uploads with S3) and publish each result whole.
@@ -264,15 +264,16 @@ class JobPace:
                 )
         return JobPace(poses_s or REFERENCE_POSES_S, *(train or (REFERENCE_STEP_S,)))
 
-    def training_s(self, options: dict[str, Any]) -> float:
-        """Seconds of the model build, training and baking (a preview too) for a job with ``options``."""
+    def training_s(self, options: dict[str, Any], previews: int = 1) -> float:
+        """Seconds of the model build, training and baking (``previews`` previews too, as the
+        measured job's preview bake; the reference's estimate counts none) for a job with ``options``."""
         from cmc.config import preset_config
         from cmc.method.eta import reference_training_s
 
         steps = options.get("steps") or preset_config(options["preset"]).steps
         if self.build_s is None or self.bake_s is None:
             return reference_training_s(steps, self.step_s)
-        return self.build_s + steps * self.step_s + self.bake_s + (self.preview_bake_s or 0.0)
+        return self.build_s + steps * self.step_s + self.bake_s + previews * (self.preview_bake_s or 0.0)
 
     def final_bake_from_preview(self, preview_s: float) -> float:
         """Seconds the final bake is expected to take after a preview bake of ``preview_s``: as
@@ -300,7 +301,7 @@ def _estimate_poses(ctx: JobContext, rec: SceneRecord, hb: _Heartbeat) -> None:
     from cmc.poses import PoseEstimationCancelled, PoseOptions, estimate_poses, poses_from_client
 
     pace = JobPace.of(ctx.store, rec)
-    later_s = pace.training_s(rec.options)
+    later_s = pace.training_s(rec.options, sum(share < 1 for share in ctx.settings.preview_at))
     t0 = time.perf_counter()
 
     def on_stage(stage: str) -> None:
@@ -437,19 +438,21 @@ class _TrainPhase:
         rays = input_rays_per_mpi(cfg, len(self.scene))
         self.bake_cost = bake_steps(cams.width, cams.height, cfg.model.margin, rays)
         self.build_cost = build_steps(cams.width, cams.height)
-        self.bake_s: float | None = None  # the final bake's seconds once the preview is baked (JobPace)
-        at = ctx.settings.preview_at
-        self.preview_step = math.ceil(at * cfg.steps) if at < 1 and "preview" not in rec.stats else None
+        self.bake_s: float | None = None  # the final bake's seconds once a preview is baked (JobPace)
+        baked = rec.stats.get("preview", {}).get("step", -1)  # the latest preview's step (a resumed job)
+        steps = {math.ceil(at * cfg.steps) for at in ctx.settings.preview_at if at < 1}
+        self.preview_steps = sorted(step for step in steps if step > baked)  # the previews to come
         self.pace = JobPace.of(ctx.store, rec)
         self.step_s = self.pace.step_s  # until this attempt builds its model (then: the build's pace)
         self.steps_measured = False  # whether step_s is this attempt's own measured step time
-        self.preview_s = 0.0  # seconds this attempt spent baking the preview (no training step's time)
+        self.preview_s = 0.0  # seconds this attempt's training spent baking previews (not steps' time)
         self.device = _training_device(ctx.settings)
         self.stats: dict[str, Any] = dict(rec.stats)
         self.preview_cost = self.bake_cost * PREVIEW_TEXEL_SCALE**2  # a bake's time is about its texels'
 
-    def _preview_pending(self) -> bool:
-        return self.preview_step is not None and "preview" not in self.stats
+    def _previews_due(self, step: int) -> bool:
+        """Whether a preview is due at training step ``step`` (one or more of those to come)."""
+        return bool(self.preview_steps) and step >= self.preview_steps[0]
 
     def _final_bake_s(self) -> float:
         from cmc.method.eta import final_bake_s
@@ -458,11 +461,12 @@ class _TrainPhase:
         return final_bake_s(self.bake_cost, self.step_s, measured)
 
     def _bakes_s(self) -> float:
-        """Seconds of the bakes still to come (the final, and the preview while pending)."""
-        if not self._preview_pending():
+        """Seconds of the bakes still to come (the final, and the previews to come)."""
+        if not self.preview_steps:
             return self._final_bake_s()
         preview = self.pace.preview_bake_s
-        return self._final_bake_s() + (self.preview_cost * self.step_s if preview is None else preview)
+        each = self.preview_cost * self.step_s if preview is None else preview
+        return self._final_bake_s() + len(self.preview_steps) * each
 
     def _eta(self, steps_left: float, built: bool = True) -> float:
         build = 0.0
@@ -516,31 +520,49 @@ class _TrainPhase:
             stats=self.stats,
         )
         hb.flush()
-        if self._preview_pending() and resumed >= self.preview_step:  # type: ignore[operator]
-            self._bake_preview()  # at step 0 (preview_at = 0), or resumed past the step without one
+        if self._previews_due(resumed):
+            self._bake_preview()  # at step 0 (a share 0), or resumed past a preview's step
             self.preview_s = 0.0  # before training: not in its elapsed time
 
     def _bake_preview(self) -> None:
-        """Bake the model as it is now and publish it as the scene's preview (whole, or not at all)."""
+        """Bake the model as it is now and publish it as the scene's preview (whole, or not at
+        all) in a folder of its own; the record then names it, and the one it replaces goes."""
         from cmc.serving.baking import MANIFEST, PREVIEW_TEXEL_SCALE, bake
 
-        cfg, hb, step = self.cfg, self.hb, self.trainer.step
+        cfg, hb, step, ctx = self.cfg, self.hb, self.trainer.step, self.ctx
         hb.set(detail=f"baking a preview at step {step} of {cfg.steps}")
         hb.flush()
         t = time.perf_counter()
-        with self.ctx.storage.writing(self.layout.preview(), manifest=MANIFEST) as folder:
+        with ctx.storage.writing(self.layout.preview(step), manifest=MANIFEST) as folder:
             bake(self.trainer.model, folder, scale=PREVIEW_TEXEL_SCALE)
-        self.preview_s = time.perf_counter() - t
-        self.bake_s = self.pace.final_bake_from_preview(self.preview_s)
+        bake_s = time.perf_counter() - t
+        self.preview_s += bake_s
+        self.bake_s = self.pace.final_bake_from_preview(bake_s)
+        self.preview_steps = [s for s in self.preview_steps if s > step]
+        replaced = self.stats.get("preview", {}).get("step")
+        first_s = self.stats.get("preview", {}).get("first_seconds_after_upload")
+        after_upload = round(time.time() - self.rec.created_at, 1)
         self.stats["preview"] = {
             "step": step,
-            "bake_seconds": round(self.preview_s, 2),
-            "seconds_after_upload": round(time.time() - self.rec.created_at, 1),
+            "bake_seconds": round(bake_s, 2),
+            "seconds_after_upload": after_upload,
+            "first_seconds_after_upload": first_s if first_s is not None else after_upload,
         }
         hb.set(
             stats=self.stats, detail=f"training ({cfg.preset} preset, {cfg.steps} steps, {self.device}); preview ready"
         )
         hb.flush()
+        if replaced is not None and replaced != step:  # the API reads the new one now
+            self._delete_previews(keep=step)
+
+    def _delete_previews(self, keep: int | None = None) -> None:
+        """Remove the scene's preview folders but the one of step ``keep`` (any, when None): those
+        a later preview or the final bake replaced, and any an attempt that crashed left."""
+        ctx, scene = self.ctx, self.rec.id
+        kept = None if keep is None else self.layout.preview(keep) + "/"
+        for key in ctx.storage.list(scene):
+            if self.layout.is_preview(key) and (kept is None or not key.startswith(kept)):
+                ctx.storage.delete(key)
 
     def _on_progress(self, p: Progress) -> None:
         trained = p.step - self.resumed_from
@@ -550,7 +572,7 @@ class _TrainPhase:
         else:  # the attempt's first step pays one-off costs: the steps to come keep the build's pace
             eta = self._eta(p.total - p.step)
         self.hb.set(progress=p.step / p.total, eta_seconds=eta)
-        if self._preview_pending() and p.step >= self.preview_step:  # type: ignore[operator]
+        if self._previews_due(p.step):
             self._bake_preview()
 
     def _publish_checkpoint(self, path: Path) -> None:
@@ -624,8 +646,7 @@ class _TrainPhase:
         if not ctx.store.advance(self.rec.id, ctx.worker_id, "done", "ready", **ready):
             raise JobStopped("lease_lost")
         ctx.storage.delete(layout.checkpoint)  # the baked MPI is the product; the checkpoint was for resuming
-        for key in ctx.storage.list(layout.preview()):  # the API serves the final bake now
-            ctx.storage.delete(key)
+        self._delete_previews()  # the API serves the final bake now
 
 
 class VideoStopped(Exception):

@@ -152,14 +152,14 @@ def viewable_scene(svc: Services, scene_id: str, owner: str) -> str:
     if rec.status == "ready":
         return layout.baked()
     if serves_preview(rec):
-        return layout.preview()
+        return layout.preview(rec.stats["preview"]["step"])
     detail = f"the scene is {rec.status}" + ("; no preview yet" if rec.status in ("training", "baking") else "")
     raise APIError(409, ErrorCode.scene_not_ready, detail, {"status": rec.status})
 
 
 def stage_of(folder: str) -> str:
     """``preview`` or ``final``: which bake the folder from :func:`viewable_scene` holds."""
-    return "preview" if folder.endswith("/preview") else "final"
+    return "preview" if SceneLayout(folder.split("/", 1)[0]).is_preview(folder) else "final"
 
 
 def ready_scene(svc: Services, scene_id: str, owner: str) -> SceneRecord:

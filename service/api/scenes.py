@@ -58,6 +58,7 @@ def scene_out(rec: SceneRecord) -> SceneOut:
         progress=round(rec.progress, 4),
         eta_seconds=rec.eta_seconds,
         preview_ready=serves_preview(rec),
+        preview_step=rec.stats["preview"]["step"] if serves_preview(rec) else None,
         detail=rec.detail,
         error=error,
         options=SceneOptions(**rec.options),

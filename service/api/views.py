@@ -152,12 +152,16 @@ def _render(
     coverage: bool,
 ) -> tuple[str, Rendered]:
     """Render from storage folder ``folder``, or from the scene's current one if that folder
-    went (a preview removed as its scene became ready); returns the folder used and the render."""
+    went (a preview removed as a later preview or the final bake replaced it); returns the folder
+    used and the render."""
     try:
         return folder, svc.renders.render(folder, K, pose, w, h, coverage)
     except FileNotFoundError:
         folder = viewable_scene(svc, scene_id, owner)
+    try:
         return folder, svc.renders.render(folder, K, pose, w, h, coverage)
+    except FileNotFoundError:
+        raise APIError(409, ErrorCode.scene_not_ready, "the scene's bake is being replaced; retry") from None
 
 
 @router.post(
@@ -254,6 +258,8 @@ def get_mpi_file(scene_id: SceneId, name: str, svc: Svc, owner: Owner) -> Respon
     atlases = {m["atlas"] for m in json.loads(manifest)["mpis"]}
     if name not in atlases:  # only names the manifest lists; never a client-built path
         raise not_found("file")
+    if stage_of(folder) == "preview" and not svc.storage.exists(f"{folder}/{name}"):
+        raise APIError(409, ErrorCode.scene_not_ready, "a later bake replaced the preview; reload mpi.json")
     return file_response(svc.storage, f"{folder}/{name}", "image/png", headers=stage)
 
 
