@@ -3,7 +3,8 @@
 The three full-resolution fern JPEGs (``images/``, no cameras part: pose estimation included) are
 uploaded to a fresh ``cmc serve`` (embedded runner, CPU) with the ``fast`` preset at ``--steps``
 training steps, and the status is polled every ``--poll`` seconds until the scene is ready. Per
-run: seconds from the upload to ``preview_ready`` and to ``ready``, the seconds in each status,
+run: seconds from the upload to each preview (the status' ``preview_step``) and to ``ready``, the
+seconds in each status,
 and how good the ETA was (issue 39: within 25 % of the truth from the first 10 % of the job on):
 at every poll from 10 % of the job's duration on, ``|eta_seconds - seconds left| / seconds left``;
 the median, the 90th percentile and the largest, and the share of polls within 25 %. The polls
@@ -99,13 +100,15 @@ def _stats_of(database: Path, scene_id: str) -> dict:
     return json.loads(row[0]) if row and row[0] else {}
 
 
-def run(scene: Path, steps: int, poll_s: float, tmp: Path) -> dict:
+def run(scene: Path, steps: int, poll_s: float, tmp: Path, preview_at: str | None = None) -> dict:
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     data, log = tmp / f"data-{steps}", tmp / f"serve-{steps}.log"
     earlier = _scenes_in(data / "cmc.db")
-    env = {k: v for k, v in os.environ.items() if k not in ("CMC_API_KEYS", "CMC_API_KEYS_FILE")}
+    env = {k: v for k, v in os.environ.items() if k not in ("CMC_API_KEYS", "CMC_API_KEYS_FILE", "CMC_PREVIEW_AT")}
     env.update(PYTHONPATH=str(ROOT), CMC_DEVICE="cpu", CMC_DATA_DIR=str(data))
+    if preview_at is not None:
+        env["CMC_PREVIEW_AT"] = preview_at
     serve = [sys.executable, "-m", "cmc.cli", "serve", "--log-level", "warning", "--data-dir", str(data)]
     proc = start([*serve, "--port", str(port)], env, log)
     try:
@@ -121,7 +124,10 @@ def run(scene: Path, steps: int, poll_s: float, tmp: Path) -> dict:
                 body = client.get(f"/v1/scenes/{sid}").json()
                 t = time.perf_counter() - t0
                 samples.append(
-                    {k: body.get(k) for k in ("status", "progress", "eta_seconds", "preview_ready", "detail")}
+                    {
+                        k: body.get(k)
+                        for k in ("status", "progress", "eta_seconds", "preview_ready", "preview_step", "detail")
+                    }
                     | {"t": t}
                 )
                 if body["status"] in ("ready", "failed"):
@@ -131,6 +137,10 @@ def run(scene: Path, steps: int, poll_s: float, tmp: Path) -> dict:
             raise RuntimeError(f"the job failed: {body}")
         total = samples[-1]["t"]
         preview = next((s["t"] for s in samples if s["preview_ready"]), None)
+        previews: dict[int, float] = {}  # each preview's step: when a poll first saw it
+        for s in samples:
+            if s.get("preview_step") is not None:
+                previews.setdefault(s["preview_step"], round(s["t"], 1))
         by_status: dict[str, float] = {}
         for a, b in zip(samples, samples[1:], strict=False):
             by_status[a["status"]] = by_status.get(a["status"], 0.0) + b["t"] - a["t"]
@@ -143,6 +153,7 @@ def run(scene: Path, steps: int, poll_s: float, tmp: Path) -> dict:
             # job measured itself: the reference's pace, or the latest earlier job's)
             "first_eta_error": round(abs(first["eta_seconds"] - (total - first["t"])) / (total - first["t"]), 3),
             "seconds_to_preview": None if preview is None else round(preview, 1),
+            "seconds_to_previews": {str(step): t for step, t in previews.items()},
             "seconds_by_status": {k: round(v, 1) for k, v in by_status.items()},
             "eta_relative_error": eta_errors(samples, total),
             "stats": _stats_of(data / "cmc.db", sid),
@@ -157,6 +168,7 @@ def main() -> None:
     ap.add_argument("--data", help="an LLFF scene folder with its photos in images/ (required to run)")
     ap.add_argument("--steps", default="80,300", help="comma-separated training steps, one job each")
     ap.add_argument("--poll", type=float, default=0.5, help="seconds between status polls")
+    ap.add_argument("--preview-at", help="the server's CMC_PREVIEW_AT (default: the service's default)")
     ap.add_argument("--out", help="the report to write (required to run)")
     ap.add_argument("--table", help="only print the markdown table of this report")
     args = ap.parse_args()
@@ -168,7 +180,7 @@ def main() -> None:
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         for steps in (int(s) for s in args.steps.split(",")):
-            row = run(Path(args.data), steps, args.poll, Path(tmp))
+            row = run(Path(args.data), steps, args.poll, Path(tmp), args.preview_at)
             runs.append(row)
             print({k: v for k, v in row.items() if k != "samples"}, flush=True)
     report = {
@@ -185,7 +197,7 @@ def main() -> None:
 def summary_table(report: dict) -> str:
     """A markdown table of a report's runs."""
     lines = [
-        "| steps | earlier jobs | preview after s | ready after s | poses / training / baking s "
+        "| steps | earlier jobs | preview after s (its step) | ready after s | poses / training / baking s "
         "| first ETA's error | ETA error: median / p90 / max | within 25 % | ETA's mean error at the end: "
         "last 10 % of steps / baking, s |",
         "|---|---|---|---|---|---|---|---|---|",
@@ -195,8 +207,11 @@ def summary_table(report: dict) -> str:
         stages = " / ".join(f"{st.get(k, 0.0):.1f}" for k in ("estimating_poses", "training", "baking"))
         first = "-" if "first_eta_error" not in r else f"{r['first_eta_error']:.2f}"  # (reports before 2026-12-02)
         training, baking = end_bias(r["samples"], r["seconds_to_ready"])
+        # each preview (reports before 2026-12-06: the first, whose step they did not record)
+        steps = r.get("seconds_to_previews") or {}
+        previews = ", ".join(f"{t} ({step})" for step, t in steps.items()) or str(r["seconds_to_preview"])
         lines.append(
-            f"| {r['steps']} | {r.get('earlier_jobs', '-')} | {r['seconds_to_preview']} | {r['seconds_to_ready']} | "
+            f"| {r['steps']} | {r.get('earlier_jobs', '-')} | {previews} | {r['seconds_to_ready']} | "
             f"{stages} | {first} | {e['median']:.2f} / {e['p90']:.2f} / {e['max']:.2f} | "
             f"{100 * e['share_within_25_percent']:.0f} % of {e['polls']} polls | {training:+.1f} / {baking:+.1f} |"
         )
