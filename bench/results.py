@@ -32,8 +32,8 @@ POSE_REPORTS = [  # (scene, report): a scene may have a row per kind of photo
 ]
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 PROFILE_REPORT = "profile_job_fern_cpu_a245170.json"
-PREVIEW_REPORT = "preview_quality_fern_half.json"
-TIMELINE_REPORT = "job_timeline_fern_cpu_ratio.json"
+PREVIEW_REPORT = "preview_quality_fern_refresh.json"
+TIMELINE_REPORT = "job_timeline_fern_cpu_previews.json"
 BUILD_REPORT = "model_build_time_fern_fused.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
 SERVICE_REPORT = "service_cpu.json"
@@ -242,12 +242,14 @@ def speed() -> list[str]:
         ]
     p = load(PREVIEW_REPORT)
     if p is not None:
-        first = p["previews"][0]
+        # the service's previews (CMC_PREVIEW_AT's default 0, 0.1: steps 0 and 30 of 300)
+        first, second = (next(r for r in p["previews"] if r["step"] == step) for step in (0, 30))
         out += [
             "",
-            f"The preview a job serves (baked at step {first['step']}, half the texel resolution): test views at",
+            f"The previews a job serves (half the texel resolution): baked at step {first['step']}, test views at",
             f"{first['psnr']:.2f} dB, {first['seconds_from_build_start']:.1f} s after the model build starts",
             "(pose estimation before it: 12.7 s on the phone photos; target: >= 20 dB within 30 s of the upload),",
+            f"then at step {second['step']} {second['psnr']:.2f} dB, {second['seconds_from_build_start']:.1f} s after the build starts,",
             f"{source(p, PREVIEW_REPORT)} (`preview_quality.md`).",
         ]
     t = load(TIMELINE_REPORT)
@@ -259,7 +261,7 @@ def speed() -> list[str]:
             '<= 30 s, ready <= 120 s, ETA within 25 % from 10 % of the job on; "earlier jobs": the jobs the same',
             "`cmc serve` data folder had finished, whose measured pace a job's first estimate takes):",
             "",
-            "| steps | earlier jobs | preview after s | ready after s | first ETA's error "
+            "| steps | earlier jobs | previews after s (their steps) | ready after s | first ETA's error "
             "| ETA within 25 % of the polls |",
             "|---|---|---|---|---|---|",
         ]
@@ -267,15 +269,16 @@ def speed() -> list[str]:
             e = r["eta_relative_error"]
             share = f"{100 * e['share_within_25_percent']:.0f} % (median error {100 * e['median']:.0f} %)"
             first = f"{100 * r['first_eta_error']:.0f} %" if "first_eta_error" in r else "-"
+            steps = r.get("seconds_to_previews") or {}
+            previews = ", ".join(f"{t} ({step})" for step, t in steps.items()) or str(r["seconds_to_preview"])
             out.append(
-                f"| {r['steps']} | {r.get('earlier_jobs', '-')} | {r['seconds_to_preview']} | {r['seconds_to_ready']} "
+                f"| {r['steps']} | {r.get('earlier_jobs', '-')} | {previews} | {r['seconds_to_ready']} "
                 f"| {first} | {share} |"
             )
         out += [
             "",
-            "Seconds depend on the day's machine: the same preset's jobs were ready after 104-115 s on",
-            "2026-12-02's third and fourth sessions' machines and after 130-164 s on the slower ones of its",
-            "first two and fifth (`job_timeline.md`).",
+            "Seconds depend on the day's machine: the same preset's jobs were ready after 104-127 s on most",
+            "2-core machines and after 130-164 s on the slower ones (`job_timeline.md`).",
         ]
     return out
 
