@@ -249,7 +249,8 @@ def speed() -> list[str]:
             f"The previews a job serves (half the texel resolution): baked at step {first['step']}, test views at",
             f"{first['psnr']:.2f} dB, {first['seconds_from_build_start']:.1f} s after the model build starts",
             "(pose estimation before it: 12.7 s on the phone photos; target: >= 20 dB within 30 s of the upload),",
-            f"then at step {second['step']} {second['psnr']:.2f} dB, {second['seconds_from_build_start']:.1f} s after the build starts,",
+            f"then at step {second['step']} {second['psnr']:.2f} dB, "
+            f"{second['seconds_from_build_start']:.1f} s after the build starts,",
             f"{source(p, PREVIEW_REPORT)} (`preview_quality.md`).",
         ]
     t = load(TIMELINE_REPORT)
