@@ -552,7 +552,7 @@ class _TrainPhase:
             stats=self.stats, detail=f"training ({cfg.preset} preset, {cfg.steps} steps, {self.device}); preview ready"
         )
         hb.flush()
-        if replaced is not None and replaced != step:  # the API reads the new one now
+        if replaced is not None and replaced != step and hb.reason is None:  # the record names the new one
             self._delete_previews(keep=step)
 
     def _delete_previews(self, keep: int | None = None) -> None:
