@@ -164,7 +164,7 @@ class Settings(BaseSettings):
     def _shares(cls, value: object) -> object:
         """A number or a comma-separated string (the environment's form) as a list."""
         if isinstance(value, str):
-            return [part for part in value.replace(",", " ").split()]
+            return value.replace(",", " ").split()
         if isinstance(value, int | float):
             return [value]
         return value
