@@ -90,7 +90,7 @@ from cmc.eval.metrics import image_metrics
 from cmc.geometry.cameras import Cameras
 from cmc.geometry.planes import mean_baseline
 from cmc.method.training import Trainer
-from cmc.poses import PoseResult, estimate_poses, read_colmap_cameras, read_colmap_points
+from cmc.poses import PoseOptions, PoseResult, estimate_poses, read_colmap_cameras, read_colmap_points
 from cmc.serving.baking import MANIFEST, BakedScene, bake
 
 METRICS = ("psnr", "ssim", "lpips_alex", "lpips_vgg")
@@ -546,6 +546,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "more after registering each test photo to the model's render by SIFT and P3P, register_to_model)",
     )
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a training setting (both runs)")
+    ap.add_argument(
+        "--max-sift-size", type=int, default=PoseOptions.max_sift_size, help="long side SIFT runs at, pixels"
+    )
     args = ap.parse_args(argv)
     device = torch.device(args.device)
     if args.save_dir:
@@ -561,7 +564,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        est = estimate_poses(photos, Path(tmp) / "scene", seed=args.seed, keep_originals=False)
+        est = estimate_poses(
+            photos, Path(tmp) / "scene", seed=args.seed, keep_originals=False, max_sift_size=args.max_sift_size
+        )
         pose_wall_s = time.perf_counter() - t0
         scene_b, size_check = estimated_scene(split, est)
         working_images = np.stack([load_image(p) for p in est.image_paths])

@@ -13,6 +13,7 @@ Usage: python bench/results.py  (from the repository root)
 from __future__ import annotations
 
 import json
+import statistics
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -164,14 +165,16 @@ def pose_accuracy_table(report: dict[str, Any]) -> list[str]:
     """Markdown rows of a bench/pose_accuracy.py report: one per scene and EXIF case."""
     out = [
         "| scene / EXIF focal | registered | focal error % | rotation error deg | centre error / baseline "
-        "| 3D points |",
-        "|---|---|---|---|---|---|",
+        "| 3D points | seconds |",
+        "|---|---|---|---|---|---|---|",
     ]
     for key, entry in report["scenes"].items():
         m = entry["summary"]
+        seconds = [t["seconds"] for t in entry["triples"] if "seconds" in t]
         out.append(
             f"| {key} | {m['registered']} | {m['median_abs_focal_error_pct']} | {m['median_rotation_error_deg']} "
-            f"| {m['median_centre_error_baseline']} | {m['median_points3D']} |"
+            f"| {m['median_centre_error_baseline']} | {m['median_points3D']} "
+            f"| {statistics.median(seconds) if seconds else '-'} |"
         )
     return out
 

@@ -30,11 +30,12 @@ from cmc.poses import (
     cameras_from_colmap,
     depth_range,
     estimate_poses,
+    intake,
     poses_from_client,
     triangulate_pair,
 )
 from cmc.poses.bounds import NEAR_FAR_MARGINS
-from cmc.poses.intake import SIFT_FULL_SIZE, sift_peak_threshold
+from cmc.poses.intake import SIFT_FULL_SIZE, sift_first_octave, sift_options, sift_peak_threshold
 
 pycolmap = pytest.importorskip("pycolmap")
 
@@ -290,6 +291,29 @@ def test_sift_threshold_follows_the_photo_size() -> None:
     photos (a 504-pixel photo of a plain room keeps about 500 features at the default)."""
     assert sift_peak_threshold(SIFT_FULL_SIZE, 0.006) == sift_peak_threshold(4032, 0.006) == 0.006
     assert sift_peak_threshold(504, 0.006) == pytest.approx(0.006 * 504 / SIFT_FULL_SIZE)
+
+
+def test_sift_doubles_only_photos_below_full_size() -> None:
+    """The first octave: COLMAP's -1 (the photo doubled) below SIFT_FULL_SIZE, the photo's own
+    scale (0) at and above it, as pycolmap receives it."""
+    assert sift_first_octave(504, -1) == sift_first_octave(SIFT_FULL_SIZE - 1, -1) == -1
+    assert sift_first_octave(SIFT_FULL_SIZE, -1) == sift_first_octave(4032, -1) == 0
+    assert sift_options(pycolmap, SIFT_FULL_SIZE, SIFT_FULL_SIZE).sift.first_octave == 0
+    small = sift_options(pycolmap, SIFT_FULL_SIZE, 504)
+    assert small.sift.first_octave == pycolmap.FeatureExtractionOptions().sift.first_octave == -1
+
+
+def test_sfm_at_the_photos_own_scale_recovers_known_cameras(scene, tmp_path: Path, monkeypatch) -> None:
+    """SfM with SIFT's first octave at the photo's own scale (what photos of SIFT_FULL_SIZE and
+    more get; here the 320-pixel photos, with the full size lowered to theirs) registers the
+    three photos about as well as with the doubled octave, from fewer points."""
+    cams, paths, _ = scene
+    doubled = estimate_poses(paths, tmp_path / "doubled", keep_originals=False)
+    monkeypatch.setattr(intake, "SIFT_FULL_SIZE", W)
+    own = estimate_poses(paths, tmp_path / "own", keep_originals=False)
+    assert own.stats["points3D"] < 0.8 * doubled.stats["points3D"], (own.stats, doubled.stats)
+    rot, tdir = relative_errors(cams.world_from_cam, own.camera_file.cameras.world_from_cam)
+    assert rot < 1.0 and tdir < 2.0, (rot, tdir)
 
 
 def test_sfm_is_deterministic_and_scales_to_the_working_size(scene, tmp_path: Path) -> None:

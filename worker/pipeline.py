@@ -192,15 +192,15 @@ def failure_code(e: BaseException) -> ErrorCode | None:
 
 
 # Share of pose estimation done when a stage starts, for the status' progress (SfM's stages report
-# nothing finer): the median stage times on fern's three 12 MP phone photos (bench/reports/history/poses_fern.md:
-# intake 1.2 s, SIFT 9.4 s, matching 1.7 s, mapping 0.2 s of 12.7 s).
+# nothing finer): the median stage times on fern's three 12 MP phone photos (bench/reports/history/sift_octave.md:
+# intake 0.97 s, SIFT 1.14 s, matching 0.21 s, mapping 0.05 s, near/far 0.02 s of 2.45 s).
 POSE_STAGE_PROGRESS = {
     "intake": 0.0,
-    "features": 0.1,
-    "matching": 0.84,
-    "mapping": 0.97,
-    "triangulation": 0.97,
-    "near_far": 0.99,
+    "features": 0.4,
+    "matching": 0.86,
+    "mapping": 0.95,
+    "triangulation": 0.95,
+    "near_far": 0.97,
     "write": 0.99,
 }
 

@@ -14,7 +14,7 @@ them on the deployment (``worker.pipeline.JobPace``), else from a reference run,
 measure their own speed: fern's three 12 MP photos at 504x378, ``fast`` preset, on the project's
 2-core CPU.
 
-* :data:`REFERENCE_POSES_S`: structure from motion, 12.7 s (median of 3, bench/reports/history/poses_fern.md).
+* :data:`REFERENCE_POSES_S`: structure from motion, 2.45 s (median of 3, bench/reports/history/sift_octave.md).
 * :data:`REFERENCE_STEP_S`: a training step, 0.42 s in ``cmc serve``: the mean step of three
   300-step jobs (bench/reports/history/job_timeline_fern_cpu_layout{1,2,3}.json, 2026-12-02:
   125.1-126.6 s from the preview to the final bake). A GPU trains much faster: until training
@@ -34,7 +34,7 @@ from collections import deque
 
 from cmc.config import TrainConfig, preset_config
 
-REFERENCE_POSES_S = 12.7
+REFERENCE_POSES_S = 2.45
 REFERENCE_STEP_S = 0.42
 
 

@@ -238,10 +238,11 @@ SIFT_FULL_SIZE = 1600  # long side (pixels) COLMAP's default SIFT peak threshold
 def sift_options(pycolmap: Any, max_image_size: int, long_side: int) -> Any:
     """pycolmap's feature extraction options as cmc extracts SIFT from photos of ``long_side``
     pixels, scaled down to at most ``max_image_size``: COLMAP's defaults with the contrast
-    threshold of :func:`sift_peak_threshold`."""
+    threshold of :func:`sift_peak_threshold` and the first octave of :func:`sift_first_octave`."""
     options = pycolmap.FeatureExtractionOptions()
     options.max_image_size = max_image_size
     options.sift.peak_threshold = sift_peak_threshold(long_side, options.sift.peak_threshold)
+    options.sift.first_octave = sift_first_octave(long_side, options.sift.first_octave)
     return options
 
 
@@ -251,6 +252,15 @@ def sift_peak_threshold(long_side: int, default: float) -> float:
     features over that threshold (a 504-pixel photo of a plain room about 500), too few for three
     photos to share the matches structure from motion needs."""
     return default * min(1.0, long_side / SIFT_FULL_SIZE)
+
+
+def sift_first_octave(long_side: int, default: int) -> int:
+    """SIFT's first octave for photos of ``long_side`` pixels: COLMAP's ``default`` (-1: the
+    photo doubled) below :data:`SIFT_FULL_SIZE`, where small photos need it for features enough;
+    0 (the photo's own scale) at and above it, where the doubled octave adds features of a
+    scale finer than phone optics resolve and takes 60 % of the pose stage's time (fern's phone
+    photos: 6.4 -> 2.6 s, their poses as accurate: bench/reports/history/sift_octave.md)."""
+    return default if long_side < SIFT_FULL_SIZE else 0
 
 
 def _pair_shift(matches: Matches, i: int, j: int) -> float:
