@@ -26,12 +26,13 @@ SCENE_REPORTS = {s: f"fold_test_{s}.json" for s in ("fern", "room", "trex")}
 VAL_REPORTS = {s: f"fold_val_{s}.json" for s in ("fern", "room", "trex")}
 SYNTHETIC_REPORT = "fold_synthetic.json"
 POSE_REPORTS = [  # (scene, report): a scene may have a row per kind of photo
-    ("fern", "poses_e2e_fern_1206.json"),
+    ("fern", "poses_e2e_fern_octave0.json"),
     ("room", "poses_e2e_room_points.json"),
     ("room", "poses_e2e_room_exif_points.json"),
     ("trex", "poses_e2e_trex_exif_points.json"),
 ]
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
+POSE_ACCURACY_ENLARGED_REPORT = "pose_accuracy_1600_after.json"
 PROFILE_REPORT = "profile_job_fern_cpu_a245170.json"
 PREVIEW_REPORT = "preview_quality_fern_refresh.json"
 TIMELINE_REPORT = "job_timeline_fern_cpu_previews.json"
@@ -183,7 +184,7 @@ def pose_accuracy() -> list[str]:
     r = load(POSE_ACCURACY_REPORT)
     if r is None:
         return []
-    return [
+    out = [
         "## The poses `cmc poses` estimates from three photos, against the dataset's",
         "",
         f"`{r['command']}`, {source(r, POSE_ACCURACY_REPORT)}: SfM on five evenly spaced triples of",
@@ -193,6 +194,17 @@ def pose_accuracy() -> list[str]:
         "",
         *pose_accuracy_table(r),
     ]
+    enlarged = load(POSE_ACCURACY_ENLARGED_REPORT)
+    if enlarged is not None:
+        out += [
+            "",
+            f"The same triples enlarged to a phone's 1600 px first (`{enlarged['command']}`,",
+            f"{source(enlarged, POSE_ACCURACY_ENLARGED_REPORT)}; SIFT at the photo's own scale: no more",
+            "detail than 504 px hold, its worst case; before that change: `history/sift_octave.md`):",
+            "",
+            *pose_accuracy_table(enlarged),
+        ]
+    return out
 
 
 def speed() -> list[str]:
