@@ -221,7 +221,7 @@ class JobPace:
     checkpoint write, at which training counts the writes to come until it has made one (None:
     not before then); ``full_cost_ratio``: that job's full-loss steps' mean time over its
     reconstruction-only ones', at which training predicts the former from the latter until it
-    has run one (None: the ratio of rays, :func:`cmc.method.eta.full_cost_ratio`). ``step_s`` is
+    has run one (None: the cost model of :func:`cmc.method.eta.full_cost_ratio`). ``step_s`` is
     the steps' mean with the checkpoint writes among them, as a job's training time holds them."""
 
     poses_s: float

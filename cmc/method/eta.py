@@ -3,11 +3,12 @@ stages of a job that have not started yet (the API's ``eta_seconds``). No torch 
 
 Training: the first ``recon_only_fraction`` of the steps render only the input views' rays (the
 reconstruction loss); from the first full-loss step on, each step also renders the rays of the
-unseen poses, so steps get slower and a rate measured early underestimates what is left.
+unseen poses, so a rate measured early misjudges what is left.
 :class:`TrainingETA` keeps each phase's mean step time apart and, until the full phase has run a
 step, predicts its step time as the reconstruction-only one times :func:`full_cost_ratio`, the
 ratio of rays a step renders in the two phases (rendering every ray through every MPI dominates
-a step). From its first step on, the full phase's own measured time replaces the prediction.
+a step) times the measured share of a full-loss ray's cost (:data:`FULL_RAY_COST`). From its
+first step on, the full phase's own measured time replaces the prediction.
 
 Stages that have not run yet are estimated as the latest ready job of the same kind measured
 them on the deployment (``worker.pipeline.JobPace``), else from a reference run, until they
@@ -50,12 +51,21 @@ def input_rays_per_mpi(cfg: TrainConfig, num_views: int) -> float:
     return cfg.rays_per_view * (1 + (num_views - 1) * cfg.cross_view_rays)
 
 
+# A full-loss step's rays cost less than the first phase's: by then alpha has concentrated and
+# the backward pass skips the colours of more faint samples (TrainConfig.colour_grad_min_weight).
+# 23 fern jobs in `cmc serve` on 2-core CPUs (the job_timeline reports of 2026-12-02 to 12-06,
+# bench/job_timeline.md) took 0.87-1.15 times (median 0.97) the first phase's mean step for a
+# full-loss step, where the rays alone say 1.17.
+FULL_RAY_COST = 0.83
+
+
 def full_cost_ratio(cfg: TrainConfig, num_views: int) -> float:
-    """Rays rendered by a full-loss step over those of a reconstruction-only step (>= 1)."""
+    """A full-loss step's predicted time over a reconstruction-only step's: the ratio of rays the
+    two render times :data:`FULL_RAY_COST`."""
     recon = input_rays_per_mpi(cfg, num_views)
     lc = cfg.loss
     unseen = cfg.unseen_poses * cfg.unseen_rays if (lc.lambda_ac > 0 or lc.lambda_dc > 0) else 0
-    return (recon + unseen) / recon
+    return FULL_RAY_COST * (recon + unseen) / recon
 
 
 def bake_steps(width: int, height: int, margin: float, rays_per_mpi: float) -> float:

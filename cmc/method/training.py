@@ -349,7 +349,7 @@ class Trainer:
         ``Progress.eta_s`` counts the writes still to come at the last write's seconds, and before
         this run has written one at ``checkpoint_write_s`` (an earlier run's; None: not at all),
         and until a full-loss step has run, those steps at ``full_cost_ratio`` times the
-        reconstruction-only ones (an earlier run's measured ratio; None: the ratio of rays,
+        reconstruction-only ones (an earlier run's measured ratio; None: the cost model of
         :func:`cmc.method.eta.full_cost_ratio`).
         """
         if checkpoint_path is not None and resume and Path(checkpoint_path).exists():
