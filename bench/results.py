@@ -35,7 +35,7 @@ POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 POSE_ACCURACY_ENLARGED_REPORT = "pose_accuracy_1600_after.json"
 PROFILE_REPORT = "profile_job_fern_cpu_a245170.json"
 PREVIEW_REPORT = "preview_quality_fern_refresh.json"
-TIMELINE_REPORT = "job_timeline_fern_cpu_previews.json"
+TIMELINE_REPORT = "job_timeline_fern_cpu_ratio083.json"
 BUILD_REPORT = "model_build_time_fern_fused.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
 SERVICE_REPORT = "service_cpu.json"
@@ -263,7 +263,8 @@ def speed() -> list[str]:
             "",
             f"The previews a job serves (half the texel resolution): baked at step {first['step']}, test views at",
             f"{first['psnr']:.2f} dB, {first['seconds_from_build_start']:.1f} s after the model build starts",
-            "(pose estimation before it: 12.7 s on the phone photos; target: >= 20 dB within 30 s of the upload),",
+            "(pose estimation before it: 2.5 s on the phone photos, `history/sift_octave.md`; target: >= 20 dB",
+            "within 30 s of the upload),",
             f"then at step {second['step']} {second['psnr']:.2f} dB, "
             f"{second['seconds_from_build_start']:.1f} s after the build starts,",
             f"{source(p, PREVIEW_REPORT)} (`preview_quality.md`).",
@@ -293,8 +294,9 @@ def speed() -> list[str]:
             )
         out += [
             "",
-            "Seconds depend on the day's machine: the same preset's jobs were ready after 104-127 s on most",
-            "2-core machines and after 130-164 s on the slower ones (`job_timeline.md`).",
+            "Seconds depend on the day's machine: jobs of the same preset (before the pose stage's 4 s",
+            "saving) were ready after 104-127 s on most 2-core machines and after 130-164 s on the slower",
+            "ones (`job_timeline.md`).",
         ]
     return out
 
