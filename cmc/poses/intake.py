@@ -232,7 +232,7 @@ def features_and_matches(
     return Matches(keypoints, pairs)
 
 
-SIFT_FULL_SIZE = 1600  # long side (pixels) COLMAP's default SIFT peak threshold suits
+SIFT_FULL_SIZE = 1600  # long side (pixels) from which SIFT keeps COLMAP's threshold and skips the doubled octave
 
 
 def sift_options(pycolmap: Any, max_image_size: int, long_side: int) -> Any:
@@ -259,7 +259,7 @@ def sift_first_octave(long_side: int, default: int) -> int:
     photo doubled) below :data:`SIFT_FULL_SIZE`, where small photos need it for features enough;
     0 (the photo's own scale) at and above it, where the doubled octave adds features of a
     scale finer than phone optics resolve and takes 60 % of the pose stage's time (fern's phone
-    photos: 6.4 -> 2.6 s, their poses as accurate: bench/reports/history/sift_octave.md)."""
+    photos: 6.47 -> 2.45 s, their poses as accurate: bench/reports/history/sift_octave.md)."""
     return default if long_side < SIFT_FULL_SIZE else 0
 
 
