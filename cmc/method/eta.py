@@ -55,7 +55,7 @@ def input_rays_per_mpi(cfg: TrainConfig, num_views: int) -> float:
 # the backward pass skips the colours of more faint samples (TrainConfig.colour_grad_min_weight).
 # 23 fern jobs in `cmc serve` on 2-core CPUs (the job_timeline reports of 2026-12-02 to 12-06,
 # bench/job_timeline.md) took 0.87-1.15 times (median 0.97) the first phase's mean step for a
-# full-loss step, where the rays alone say 1.17.
+# full-loss step, where the rays alone say 1.17 (2048 unseen rays then).
 FULL_RAY_COST = 0.83
 
 
