@@ -74,7 +74,7 @@ def score_triple(data: Path, ids: list[int], exif_focal: bool, seed: int, upscal
         if upscale:
             photos = enlarged(photos, upscale, Path(tmp) / "enlarged")
         if exif_focal:
-            scale = (upscale or max(width, height)) / max(width, height)
+            scale = upscale / max(width, height) if upscale else 1.0  # the focal at the photos' size
             photos = with_exif_focal(photos, float(gt.K[0, 0, 0]) * scale, Path(tmp) / "exif")
         try:
             est = estimate_poses(photos, Path(tmp) / "scene", seed=seed, keep_originals=False)

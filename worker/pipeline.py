@@ -539,8 +539,8 @@ class _TrainPhase:
         self.preview_s += bake_s
         self.bake_s = self.pace.final_bake_from_preview(bake_s)
         self.preview_steps = [s for s in self.preview_steps if s > step]
-        replaced = self.stats.get("preview", {}).get("step")
-        first_s = self.stats.get("preview", {}).get("first_seconds_after_upload")
+        previous = self.stats.get("preview", {})
+        replaced, first_s = previous.get("step"), previous.get("first_seconds_after_upload")
         after_upload = round(time.time() - self.rec.created_at, 1)
         self.stats["preview"] = {
             "step": step,
