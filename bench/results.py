@@ -22,9 +22,9 @@ HERE = Path(__file__).resolve().parent
 REPORTS = HERE / "reports"
 
 # The current report of each kind (in reports/current).
-SCENE_REPORTS = {s: f"fold_test_{s}.json" for s in ("fern", "room", "trex")}
-VAL_REPORTS = {s: f"fold_val_{s}.json" for s in ("fern", "room", "trex")}
-SYNTHETIC_REPORT = "fold_synthetic.json"
+SCENE_REPORTS = {s: f"preset1206_test_{s}.json" for s in ("fern", "room", "trex")}
+VAL_REPORTS = {s: f"unseen1024_val_{s}.json" for s in ("fern", "room", "trex")}
+SYNTHETIC_REPORT = "unseen1024_synthetic.json"
 POSE_REPORTS = [  # (scene, report): a scene may have a row per kind of photo
     ("fern", "poses_e2e_fern_octave0.json"),
     ("room", "poses_e2e_room_points.json"),
@@ -89,9 +89,6 @@ def view_quality() -> list[str]:
         "views (`--views val`: the images neither trained on nor tested, on which settings are chosen) in",
         "the last column. Training seconds depend on the day's machine: the 2-core machines differ by up",
         "to 1.7x (a fern training of the same cost a step took 225 s on one, 350 s on another: bench/PROFILE.md).",
-        "These reports (and the synthetic set's below) predate 1024 rays at the unseen pose instead of",
-        "2048 (41027ae), which moved every validation view and synthetic group by 0.02 dB at most (the",
-        "experiment of that title); the test views were not re-run.",
         "",
         "| scene | PSNR / SSIM / LPIPS-vgg | target (issue 38) | met | train s | report | validation views |",
         "|---|---|---|---|---|---|---|",
