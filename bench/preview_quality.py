@@ -6,7 +6,7 @@ Step 0 is the model as the plane sweep starts it (a job with ``CMC_PREVIEW_AT=0`
 that). Each row gives the step, the seconds from the start of the model build to the end of that
 bake (training time included, the bakes and scoring before it not), and the baked renders' mean
 PSNR / SSIM on the test views. Pose estimation, before the model build in a job, is not in it
-(bench/reports/history/poses_fern.md: 12.7 s on fern's phone photos).
+(bench/reports/history/sift_octave.md: 2.45 s on fern's phone photos, median of 3).
 
 Usage (repository root, nothing else running):
     PYTHONPATH=. python bench/preview_quality.py --data ../shared/datasets/llff/fern \

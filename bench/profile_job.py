@@ -12,7 +12,7 @@ Stages, each timed with the device synchronised at its ends:
     (``cmc.serving.baking.bake``), each scored on the test views (PSNR; the scoring is not
     timed); ``load`` (``BakedScene.load``), the first render of a test view and the median of
     ``--renders`` more.
-Pose estimation is not in it (bench/reports/history/poses_fern.md times it on the phone photos). The split
+Pose estimation is not in it (bench/reports/history/sift_octave.md times it on the phone photos). The split
 training loop syncs the device three times a step, which the service's loop does not.
 
 Usage (repository root):

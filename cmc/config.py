@@ -80,7 +80,7 @@ class ModelConfig:
     # of the planes is spread uniformly and the rest follows where a plane sweep finds the scene's
     # surfaces (cmc.method.model.sweep_statistics, cmc.geometry.planes.content_plane_depths), so that a surface
     # lies nearer a plane and a view far from the inputs sees it less displaced.
-    plane_density_floor: float = 0.25
+    plane_density_floor: float = 0.05
     # With plane_density_floor below 1: the planes span only the depths where the first plane sweep
     # finds the scene's surfaces (cmc.geometry.planes.occupied_depth_range), not all of the scene's
     # near/far bounds, so the views do not depend on how tight those bounds are.
@@ -205,7 +205,7 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       same views), 1024 rays at the step's unseen pose (``unseen_rays``: twice as many moved no
       validation view by 0.02 dB), Adam's learning rate 0.04 falling to
       0.005, the 56 planes spaced by where a first
-      plane sweep finds the surfaces (``model.plane_density_floor=0.25``: a quarter of them
+      plane sweep finds the surfaces (``model.plane_density_floor=0.05``: a twentieth of them
       uniform in disparity, the rest following the cube root of the sweep's density) over the
       depths where that sweep finds the scene, not all of near..far (``model.fit_depth_range``:
       the views do not depend on how loose the bounds are), each input
