@@ -95,7 +95,9 @@ def test_alpha_entropy_prior_clears_fog_and_keeps_halfway_views():
     a ray sees through far fewer faint planes, and the views halfway between the inputs are no
     worse, within 0.1 dB (at 0.01 they were 0.2 dB better when this was written, with uniform
     planes: fog is what doubles a surface between the photos; with the planes crowded at the
-    surfaces, the same to 0.01 dB)."""
+    surfaces, the same to 0.01 dB). Faint planes seen, without and with the prior: 2.26 -> 1.35
+    with a quarter of the planes uniform, 2.25 -> 1.61 with the preset's twentieth; halfway views
+    +0.32 and +0.29 dB."""
     W2, H2 = 84, 63
     split = wide_baseline_split("posts", W2, H2)
     base = preset_config("fast", steps=100, rays_per_view=512, unseen_rays=256)
@@ -114,7 +116,7 @@ def test_alpha_entropy_prior_clears_fog_and_keeps_halfway_views():
             ]
         results[lam] = (_visible_faint_alpha(trainer, W2, H2), float(np.mean(halfway)))
     (fog0, half0), (fog1, half1) = results[0.0], results[weight]
-    assert fog1 < 0.7 * fog0, results
+    assert fog1 < 0.8 * fog0, results
     assert half1 >= half0 - 0.1, results
 
 
@@ -373,20 +375,25 @@ def test_cross_view_colour_factor_keeps_each_mpi_on_its_photo():
 def test_content_plane_depths_put_planes_at_the_layers(tmp_path):
     """With ``model.plane_density_floor`` below 1 the model's planes (the same in every MPI, and
     in the bake) crowd at the depths where the plane sweep finds the scene's layers: each layer
-    of the synthetic scene lies nearer a plane, in disparity, than with uniform planes."""
+    of the synthetic scene lies nearer a plane, in disparity, than with uniform planes, and (the
+    preset's floor being below 0.25) nearer than with a quarter of the planes uniform."""
     from cmc.data.datasets import DEFAULT_LAYERS
     from cmc.method.model import CMCModel
     from cmc.serving.baking import BakedScene, bake
 
     scene = synthetic_scene(num_views=3, width=W, height=H)
     base = preset_config("fast").model
-    models = {fl: CMCModel(scene, replace(base, num_planes=12, plane_density_floor=fl)) for fl in (1.0, 0.25)}
+    assert base.plane_density_floor < 0.25
+    floors = (1.0, 0.25, base.plane_density_floor)
+    models = {fl: CMCModel(scene, replace(base, num_planes=12, plane_density_floor=fl)) for fl in floors}
 
     def gap(model: CMCModel) -> float:  # mean over layers of the disparity distance to the nearest plane
         disp = 1 / model.frames[0].depths.numpy()
         return float(np.mean([np.abs(disp - 1 / layer.z).min() for layer in DEFAULT_LAYERS]))
 
-    adaptive = models[0.25]
+    # when this was written: 0.0102 uniform, 0.0063 with a quarter uniform, 0.0062 with a twentieth
+    assert gap(models[base.plane_density_floor]) < gap(models[0.25]), {fl: gap(m) for fl, m in models.items()}
+    adaptive = models[base.plane_density_floor]
     for fr in adaptive.frames[1:]:
         torch.testing.assert_close(fr.depths, adaptive.frames[0].depths)
     assert adaptive.frames[0].depths[0].item() == pytest.approx(adaptive.near)  # fitted to the scene
