@@ -7,6 +7,7 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(VENV)/bin/pip install --quiet --upgrade pip
 	$(VENV)/bin/pip install --quiet -e '.[dev]'
+	$(VENV)/bin/python -c 'from cmc.kernel_cache import warm_up_kernels; warm_up_kernels()'  # compiled once, here
 	touch $@
 
 install: $(VENV)/.installed

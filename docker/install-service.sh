@@ -15,7 +15,7 @@ pip install --no-deps "$src"
 cd /
 rm -rf "$src"
 env -u CMC_KERNEL_CACHE_SEED NUMBA_CACHE_DIR="$CMC_KERNEL_CACHE_SEED" \
-    python -c "import cmc.serving.texture_kernel as k, cmc.mpi.plane_sampling as s, cmc.method.sweep_kernel as w, cmc.mpi.composite_kernel as c, cmc.method.prior_kernel as p; k.warm_up(); s.warm_up(); w.warm_up(); c.warm_up(); p.warm_up()"
+    python -c "from cmc.kernel_cache import warm_up_kernels; warm_up_kernels()"
 chmod -R a+rX "$CMC_KERNEL_CACHE_SEED"
 groupadd --gid 10001 cmc
 useradd --uid 10001 --gid 10001 --no-log-init --no-create-home --home-dir /tmp cmc
