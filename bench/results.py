@@ -27,7 +27,7 @@ VAL_REPORTS = {s: f"floor005_val_{s}.json" for s in ("fern", "room", "trex")}
 SYNTHETIC_REPORT = "floor005_synthetic.json"
 POSE_REPORTS = [  # (scene, report): a scene may have a row per kind of photo
     ("fern", "poses_e2e_fern_octave0.json"),
-    ("room", "poses_e2e_room_points.json"),
+    ("room", "poses_e2e_room_floor005.json"),
     ("room", "poses_e2e_room_exif_points.json"),
     ("trex", "poses_e2e_trex_exif_points.json"),
 ]
@@ -137,8 +137,10 @@ def poses() -> list[str]:
         "run's own model with the photo itself: the difference that is the reconstruction's, not the",
         "test views' registration. Registered by: `structure` through the dataset's own sparse model",
         "(fern), `points` by the held-out photo's SIFT matches to the estimated reconstruction's points",
-        "(room, trex: no sparse model ships with them). These runs predate a twentieth of the planes",
-        "uniform (c44f8e2, room's test views +0.23 dB with the dataset's poses) and were not re-run.",
+        "(room, trex: no sparse model ships with them). The first room row has the planes of c44f8e2 (a",
+        "twentieth uniform; its report says f1bf72b+dirty: the tree held 0aab94d's worker change, which",
+        "this script does not run); the other rows predate them (room with the earlier planes, the same",
+        "photos: 22.52 / 22.32 dB, -0.21, `poses_e2e_room_points.json`) and were not re-run.",
         "",
         "| scene | photos | steps | dataset poses | estimated poses | PSNR difference | registered by "
         "| after registering to the model | report |",
@@ -298,7 +300,11 @@ def speed() -> list[str]:
             "",
             "Seconds depend on the day's machine: jobs of the same preset (before the pose stage's 4 s",
             "saving) were ready after 104-127 s on most 2-core machines and after 130-164 s on the slower",
-            "ones (`job_timeline.md`).",
+            "ones (`job_timeline.md`). With the planes of c44f8e2, on 2026-12-07's machine (full-loss steps",
+            "0.51-0.58 s against 0.25-0.40 s), 204 s, the ETA within 25 % at 97 % of the polls of a 300-step",
+            "job and 72-77 % of the 80-step jobs' (`job_timeline.md`, last section: slow stretches of steps),",
+            "and a machine's first job, which compiles the kernels, within 25 % at 83 % of its polls since",
+            "0aab94d (69 % before, its ETA up to 6x the truth).",
         ]
     return out
 
