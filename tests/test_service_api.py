@@ -981,17 +981,11 @@ def test_unfinished_job_resumes_after_a_restart(tmp_path: Path) -> None:
     assert rec.attempts == 0  # a clean stop is not a lost worker
 
 
-def test_unusable_checkpoint_trains_from_step_zero(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A stored checkpoint that cannot be loaded (here torn) is deleted and the job trains from step
-    0; the model is built again for it, and the build time the job records (and paces its ETA by)
-    is that build's alone."""
+def time_builds(monkeypatch: pytest.MonkeyPatch) -> list[float]:
+    """From now on each model build's seconds (the Trainer's construction), in the list returned."""
     import cmc.method.training
 
-    settings = settings_for(tmp_path, checkpoint_every=5)
-    sid = _stopped_mid_training(settings)
-    checkpoint = tmp_path / "storage" / sid / "checkpoint.pt"
-    checkpoint.write_bytes(checkpoint.read_bytes()[:1000])  # torn
-    builds: list[float] = []  # seconds of each model build
+    builds: list[float] = []
 
     class TimedTrainer(cmc.method.training.Trainer):
         def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -1000,6 +994,19 @@ def test_unusable_checkpoint_trains_from_step_zero(tmp_path: Path, monkeypatch: 
             builds.append(time.perf_counter() - t)
 
     monkeypatch.setattr(cmc.method.training, "Trainer", TimedTrainer)
+    return builds
+
+
+def test_unusable_checkpoint_trains_from_step_zero(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stored checkpoint that cannot be loaded (here torn) is deleted and the job trains from step
+    0; the model is built again for it, and the build time the job records (and paces its ETA by)
+    is that build's alone."""
+
+    settings = settings_for(tmp_path, checkpoint_every=5)
+    sid = _stopped_mid_training(settings)
+    checkpoint = tmp_path / "storage" / sid / "checkpoint.pt"
+    checkpoint.write_bytes(checkpoint.read_bytes()[:1000])  # torn
+    builds = time_builds(monkeypatch)
     with TestClient(create_app(settings)) as client:
         body = wait_for(client, sid, ("ready", "failed"))
         assert body["status"] == "ready", body
@@ -1015,7 +1022,6 @@ def test_the_kernels_load_before_the_build_is_timed(tmp_path: Path, monkeypatch:
     (whose pace predicts the steps' until one is measured) is not the compiler's. Here loading
     them takes a second longer than it does."""
     import cmc.kernel_cache
-    import cmc.method.training
 
     warm_up = cmc.kernel_cache.warm_up_kernels
 
@@ -1023,16 +1029,8 @@ def test_the_kernels_load_before_the_build_is_timed(tmp_path: Path, monkeypatch:
         time.sleep(1.0)
         warm_up()
 
-    builds: list[float] = []  # seconds of each model build
-
-    class TimedTrainer(cmc.method.training.Trainer):
-        def __init__(self, *args: Any, **kwargs: Any) -> None:
-            t = time.perf_counter()
-            super().__init__(*args, **kwargs)
-            builds.append(time.perf_counter() - t)
-
     monkeypatch.setattr(cmc.kernel_cache, "warm_up_kernels", slow_warm_up)
-    monkeypatch.setattr(cmc.method.training, "Trainer", TimedTrainer)
+    builds = time_builds(monkeypatch)
     parts, _, _ = synthetic_upload(steps=4)
     t0 = time.time()
     with TestClient(create_app(settings_for(tmp_path, preview_at=""))) as client:
