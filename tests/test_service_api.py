@@ -1001,7 +1001,6 @@ def test_unusable_checkpoint_trains_from_step_zero(tmp_path: Path, monkeypatch: 
     """A stored checkpoint that cannot be loaded (here torn) is deleted and the job trains from step
     0; the model is built again for it, and the build time the job records (and paces its ETA by)
     is that build's alone."""
-
     settings = settings_for(tmp_path, checkpoint_every=5)
     sid = _stopped_mid_training(settings)
     checkpoint = tmp_path / "storage" / sid / "checkpoint.pt"

@@ -493,7 +493,7 @@ class _TrainPhase:
         warm_up_kernels()
         kernels_s = time.perf_counter() - t
         building = f"building the model ({cfg.preset} preset: plane sweep"
-        hb.set(eta_seconds=self._eta(cfg.steps, built=False), detail=building + ")")
+        hb.set(detail=building + ")")  # the ETA stays the one set above: the build has not started
         hb.flush()
         started = time.perf_counter()  # of the build under way
         build_s = 0.0  # seconds of the last build (a second follows an unusable checkpoint)
