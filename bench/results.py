@@ -26,10 +26,10 @@ SCENE_REPORTS = {s: f"floor005_test_{s}.json" for s in ("fern", "room", "trex")}
 VAL_REPORTS = {s: f"floor005_val_{s}.json" for s in ("fern", "room", "trex")}
 SYNTHETIC_REPORT = "floor005_synthetic.json"
 POSE_REPORTS = [  # (scene, report): a scene may have a row per kind of photo
-    ("fern", "poses_e2e_fern_octave0.json"),
+    ("fern", "poses_e2e_fern_floor005.json"),
     ("room", "poses_e2e_room_floor005.json"),
-    ("room", "poses_e2e_room_exif_points.json"),
-    ("trex", "poses_e2e_trex_exif_points.json"),
+    ("room", "poses_e2e_room_exif_floor005.json"),
+    ("trex", "poses_e2e_trex_exif_floor005.json"),
 ]
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 POSE_ACCURACY_ENLARGED_REPORT = "pose_accuracy_1600_after.json"
@@ -137,10 +137,10 @@ def poses() -> list[str]:
         "run's own model with the photo itself: the difference that is the reconstruction's, not the",
         "test views' registration. Registered by: `structure` through the dataset's own sparse model",
         "(fern), `points` by the held-out photo's SIFT matches to the estimated reconstruction's points",
-        "(room, trex: no sparse model ships with them). The first room row has the planes of c44f8e2 (a",
-        "twentieth uniform; its report says f1bf72b+dirty: the tree held 0aab94d's worker change, which",
-        "this script does not run); the other rows predate them (room with the earlier planes, the same",
-        "photos: 22.52 / 22.32 dB, -0.21, `poses_e2e_room_points.json`) and were not re-run.",
+        "(room, trex: no sparse model ships with them). Every row has the planes of c44f8e2 (a twentieth",
+        "uniform; the reports of 2026-12-07 say f1bf72b+dirty or d05e22e: the first tree held 0aab94d's",
+        "worker change, which this script does not run). With the earlier planes (2026-12-06,",
+        "`bench/reports/history/`): fern -0.26, room -0.21, room with EXIF -0.28, trex -0.32 dB.",
         "",
         "| scene | photos | steps | dataset poses | estimated poses | PSNR difference | registered by "
         "| after registering to the model | report |",
