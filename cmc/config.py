@@ -34,7 +34,6 @@ class PyramidFieldConfig:
     scales: tuple[float, ...] = (0.5, 0.25, 0.125, 0.0625)  # per-plane alpha levels
     # Per-plane colour residual levels, added to the base colour of the plane's group.
     colour_scales: tuple[float, ...] = (0.25, 0.125, 0.0625)
-    base_scale: float = 1.0  # shared base colour resolution, relative to the plane extent
     base_groups: int = 8  # base colours: one per group of adjacent planes (CMCModel: at most one per plane)
     # How rays sample the base colours: "bilinear", or "bicubic" (a sharper reconstruction: a
     # texture seen at another sub-texel phase than it was fitted at keeps its detail; the bake

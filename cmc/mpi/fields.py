@@ -155,7 +155,7 @@ class PyramidPlaneField(MPIField):
         if not 1 <= cfg.base_groups <= num_planes:
             raise ConfigError(f"base_groups must be 1 to num_planes ({num_planes}), got {cfg.base_groups}")
         rgb = init_rgb.float().reshape(-1, *init_rgb.shape[-3:])  # [1 or G, 3, h, w]
-        base = F.interpolate(rgb, size=size(cfg.base_scale), mode="bilinear", align_corners=False)
+        base = F.interpolate(rgb, size=size(1.0), mode="bilinear", align_corners=False)  # the plane extent's grid
         base = torch.logit(base.clamp(0.02, 0.98)).expand(cfg.base_groups, -1, -1, -1)
         self.base = nn.Parameter(base.contiguous())  # [G, 3, h, w]
         # Initial alpha 1 / (D - k), held by the coarsest level: every plane contributes equally.
