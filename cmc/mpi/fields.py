@@ -129,8 +129,8 @@ class PyramidPlaneField(MPIField):
         num_planes: D.
         height, width: plane extent in reference-image pixels (image size times margin).
         cfg: level scales and base groups.
-        init_rgb: [3, h, w] initial base colour in [0, 1] (the reference photo, padded), or
-            [G, 3, h, w], one per base group.
+        init_rgb: [3, height, width] initial base colour in [0, 1] (the reference photo, padded),
+            or [G, 3, height, width], one per base group.
         init_alpha: optional [D, h0, w0] initial alpha of each plane (any size; resampled to the
             finest level). Without it alpha starts at 1 / (D - k): equal composite weights.
     """
@@ -155,8 +155,11 @@ class PyramidPlaneField(MPIField):
         if not 1 <= cfg.base_groups <= num_planes:
             raise ConfigError(f"base_groups must be 1 to num_planes ({num_planes}), got {cfg.base_groups}")
         rgb = init_rgb.float().reshape(-1, *init_rgb.shape[-3:])  # [1 or G, 3, h, w]
-        base = F.interpolate(rgb, size=size(1.0), mode="bilinear", align_corners=False)  # the plane extent's grid
-        base = torch.logit(base.clamp(0.02, 0.98)).expand(cfg.base_groups, -1, -1, -1)
+        if rgb.shape[-2:] != (height, width):
+            raise ValueError(
+                f"init_rgb must be on the plane extent's grid {height} x {width}, got {tuple(rgb.shape[-2:])}"
+            )
+        base = torch.logit(rgb.clamp(0.02, 0.98)).expand(cfg.base_groups, -1, -1, -1)
         self.base = nn.Parameter(base.contiguous())  # [G, 3, h, w]
         # Initial alpha 1 / (D - k), held by the coarsest level: every plane contributes equally.
         k = torch.arange(num_planes, dtype=torch.float32, device=rgb.device)
