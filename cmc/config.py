@@ -44,6 +44,11 @@ class PyramidFieldConfig:
     # probable plane) start as the background continued from nearby (cmc.method.model.hidden_layer_colours);
     # False: every group starts as the reference photo.
     hidden_colour_everywhere: bool = True
+    # > 0: while training, each group's colour also changes with the angle between a ray and the
+    # reference camera's ray through the same point, by a texture at this scale of the plane
+    # extent, held off where the photo is textured (cmc.mpi.fields.ViewColour); bakes and renders
+    # show the reference camera's colours. 0: colour is the same from every direction.
+    view_colour_scale: float = 0.125
 
 
 @dataclass

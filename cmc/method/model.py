@@ -13,9 +13,9 @@ from torch import nn
 from cmc.config import ModelConfig
 from cmc.data.datasets import Scene
 from cmc.errors import ConfigError
-from cmc.geometry.planes import content_plane_depths, occupied_depth_range, texel_grid
+from cmc.geometry.planes import content_plane_depths, mean_baseline, occupied_depth_range, texel_grid
 from cmc.method.planesweep import alpha_from_weights, plane_sweep_weights
-from cmc.mpi.fields import MLPField, MPIField, PyramidPlaneField, plane_group_bounds
+from cmc.mpi.fields import MLPField, MPIField, PyramidPlaneField, ViewColour, plane_group_bounds
 from cmc.mpi.rendering import ImageOutput, MPIFrame, render_image
 
 
@@ -222,6 +222,8 @@ class CMCModel(nn.Module):
         report = on_progress or (lambda share: None)
         report(PLACING_SHARE)
         fields: list[MPIField] = []
+        # A typical parallax between the inputs (ViewColour's unit of ray slope).
+        slope_scale = mean_baseline(cams.world_from_cam[:, :3, 3]) * (1 / self.near + 1 / self.far) / 2
         for i, fr in enumerate(self.frames):
             if cfg.field_type == "mlp":
                 fields.append(MLPField(cfg.num_planes, cfg.mlp))
@@ -232,7 +234,12 @@ class CMCModel(nn.Module):
                     init_alpha = alpha_from_weights(probs)
                     if cfg.pyramid.hidden_colour_everywhere:
                         rgb = hidden_layer_colours(rgb, probs.argmax(0), cfg.num_planes, cfg.pyramid.base_groups)
-                fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha))
+                view_colour = None
+                if cfg.pyramid.view_colour_scale > 0:
+                    size = tuple(max(2, round(n * cfg.pyramid.view_colour_scale)) for n in fr.extent)
+                    photo = padded_reference(scene.images[i], fr)
+                    view_colour = ViewColour(cfg.pyramid.base_groups, size, fr.grid_from_camera(), slope_scale, photo)
+                fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha, view_colour))
             else:
                 raise ValueError(f"unknown field type {cfg.field_type!r}")
             report(PLACING_SHARE + (1 - PLACING_SHARE) * (i + 1) / len(self.frames))

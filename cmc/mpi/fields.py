@@ -113,6 +113,89 @@ def plane_group_bounds(num_planes: int, groups: int) -> list[int]:
     return [-(-i * num_planes // groups) for i in range(groups + 1)]
 
 
+def _grid_sample_groups(texture: torch.Tensor, grid: torch.Tensor, bounds: list[int], mode: str) -> torch.Tensor:
+    """Texture i of ``texture`` [G, C, h, w] sampled (``grid_sample``, ``mode``) at the points of
+    planes [bounds[i], bounds[i + 1]) of ``grid`` [D, R, 2] -> [D, C, R] (any device)."""
+    C = texture.shape[1]
+    return torch.cat(
+        [
+            F.grid_sample(texture[i : i + 1], grid[k0:k1].reshape(1, 1, -1, 2), mode=mode, align_corners=False)
+            .reshape(C, k1 - k0, -1)
+            .transpose(0, 1)
+            for i, (k0, k1) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))
+        ]
+    )
+
+
+def flatness(photo: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """How untextured ``photo`` [3, H, W] is around each texel of a [h, w] = ``size`` grid, in
+    (0, 1]: exp(-(m / median m)^2) of m, the mean over the texel of the grey image's central-
+    difference gradient magnitude; 1 where the photo is flat, near 0 where it is more textured
+    than most of it. Returns [h, w]."""
+    grey = photo.mean(0)
+    grad = torch.zeros_like(grey)
+    gx = (grey[1:-1, 2:] - grey[1:-1, :-2]) / 2
+    gy = (grey[2:, 1:-1] - grey[:-2, 1:-1]) / 2
+    grad[1:-1, 1:-1] = (gx**2 + gy**2).sqrt()
+    m = F.adaptive_avg_pool2d(grad[None, None], size)[0, 0]
+    return torch.exp(-((m / m.median().clamp_min(1e-6)) ** 2))
+
+
+class ViewColour(nn.Module):
+    """A training-time term of a :class:`PyramidPlaneField`'s colour: how much a group's colour
+    logits change with the direction a ray crosses a plane.
+
+    At a plane sample, ``delta`` [2] is the target ray's slope (x / z, y / z in the reference
+    camera's frame) minus the slope of the reference camera's ray through the same point, in
+    units of ``slope_scale`` (a typical parallax: the inputs' mean baseline over a typical scene
+    depth), clamped to [-2, 2]; it is 0 for every ray of the reference photo. The colour logits
+    gain ``A(g) @ delta`` per channel, A a [G, 3 x 2, h, w] texture per group of planes (bilinear,
+    starting at 0) times :func:`flatness` of the reference photo, so that the other photos'
+    reflections and highlights on smooth surfaces need not be explained by geometry, while a
+    textured surface's change with the view, which is what a wrong depth looks like, still moves
+    the geometry. Renders and bakes show the reference camera's colours (delta = 0): the term is
+    a nuisance the training explains away, not view-dependent appearance to show.
+
+    Args:
+        groups: G; size: (h, w) of the texture; grid_from_camera: [2, 3] the frame's
+        :meth:`cmc.mpi.rendering.MPIFrame.grid_from_camera` (no skew); slope_scale: as above;
+        photo: [3, H, W] the reference photo on the plane extent's grid.
+    """
+
+    def __init__(
+        self,
+        groups: int,
+        size: tuple[int, int],
+        grid_from_camera: torch.Tensor,
+        slope_scale: float,
+        photo: torch.Tensor,
+    ):
+        super().__init__()
+        self.texture = nn.Parameter(torch.zeros(groups, 6, *size, device=photo.device))
+        self.register_buffer("mask", flatness(photo, size))
+        M = grid_from_camera.float()
+        self.register_buffer("focal", torch.stack([M[0, 0], M[1, 1]]))  # grid units per unit slope
+        self.register_buffer("centre", M[:, 2].clone())  # grid coordinates of the optical axis
+        self.slope_scale = float(slope_scale)
+
+    def logits(self, grid: torch.Tensor, dirs: torch.Tensor, bounds: list[int], where: torch.Tensor | None):
+        """Colour logits [D, 3, R] at grid [D, R, 2] for rays along dirs [R, 3] (the groups'
+        planes by ``bounds``); with ``where`` ([D, R] bool) only at the samples it marks, 0
+        elsewhere."""
+        ref_slope = (grid - self.centre) / self.focal  # [D, R, 2]
+        delta = ((dirs[:, :2] / dirs[:, 2:3] - ref_slope) / self.slope_scale).clamp(-2, 2)
+        texture = self.texture * self.mask
+        if plane_sampling.supported(grid, [texture]):
+            G = len(bounds) - 1
+            groups = [i for i in range(G) for _ in range(bounds[i], bounds[i + 1])]
+            a = plane_sampling.sample_planes(grid, groups, [texture.contiguous()], where=where)
+        else:
+            a = _grid_sample_groups(texture, grid, bounds, "bilinear")
+            if where is not None:
+                a = torch.where(where[:, None], a, torch.zeros_like(a))
+        return a[:, 0::2] * delta[:, None, :, 0] + a[:, 1::2] * delta[:, None, :, 1]
+
+
 class PyramidPlaneField(MPIField):
     """Explicit per-plane textures; see the module docstring.
 
@@ -133,6 +216,8 @@ class PyramidPlaneField(MPIField):
             or [G, 3, height, width], one per base group.
         init_alpha: optional [D, h0, w0] initial alpha of each plane (any size; resampled to the
             finest level). Without it alpha starts at 1 / (D - k): equal composite weights.
+        view_colour: optional :class:`ViewColour` (with ``cfg.base_groups`` groups), added to
+            the colour logits of training rays; the texel grid (bakes) leaves it out.
     """
 
     def __init__(
@@ -143,9 +228,11 @@ class PyramidPlaneField(MPIField):
         cfg: PyramidFieldConfig,
         init_rgb: torch.Tensor,
         init_alpha: torch.Tensor | None = None,
+        view_colour: ViewColour | None = None,
     ):
         super().__init__()
         self.num_planes = num_planes
+        self.view_colour = view_colour
         self.cfg = cfg
         self.colour_interpolation = cfg.base_interpolation
 
@@ -186,13 +273,17 @@ class PyramidPlaneField(MPIField):
     ):
         grid = g.transpose(0, 1)  # [D, R, 2], the samplers' layout
         alpha = _opaque_back(torch.sigmoid(self._alpha_logits(grid).T))
-        where = None if colour_where is None else colour_where(alpha).T.contiguous()  # once for both samplers
-        return torch.sigmoid(self._colour_logits(grid, where).permute(2, 0, 1)), alpha
+        where = None if colour_where is None else colour_where(alpha).T.contiguous()  # once for every sampler
+        logits = self._colour_logits(grid, where)
+        if self.view_colour is not None:
+            logits = logits + self.view_colour.logits(grid, dirs, plane_group_bounds(len(grid), len(self.base)), where)
+        return torch.sigmoid(logits.permute(2, 0, 1)), alpha
 
     @torch.no_grad()
     def on_texel_grid(self, g: torch.Tensor, plane_z: torch.Tensor, dirs: torch.Tensor, chunk: int = 0):
-        """:meth:`MPIField.on_texel_grid` without the directions: every texel at once, in the
-        layout the samplers return (no reordering of the D x h x w samples)."""
+        """:meth:`MPIField.on_texel_grid` without the directions (the reference camera's colours:
+        no :class:`ViewColour`): every texel at once, in the layout the samplers return (no
+        reordering of the D x h x w samples)."""
         h, w, _ = g.shape
         grid = g.reshape(1, -1, 2).expand(len(plane_z), -1, 2).contiguous()
         alpha = self._alpha_logits(grid).sigmoid_()
@@ -232,23 +323,10 @@ class PyramidPlaneField(MPIField):
         """:meth:`_colour_logits` at every sample with ``grid_sample`` (any device;
         :mod:`cmc.mpi.plane_sampling` computes the same on the CPU); ``residual`` the folded
         colour levels [D, 3, h, w], or None."""
-        grid = grid[:, None]  # [D, 1, R, 2]
-        base = torch.cat(
-            [
-                F.grid_sample(
-                    self.base[i : i + 1],
-                    grid[k0:k1].reshape(1, 1, -1, 2),
-                    mode=self.cfg.base_interpolation,
-                    align_corners=False,
-                )
-                .reshape(3, k1 - k0, -1)
-                .transpose(0, 1)
-                for i, (k0, k1) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))
-            ]
-        )
+        base = _grid_sample_groups(self.base, grid, bounds, self.cfg.base_interpolation)
         if residual is None:
             return base
-        return base + F.grid_sample(residual, grid, align_corners=False).squeeze(2)
+        return base + F.grid_sample(residual, grid[:, None], align_corners=False).squeeze(2)
 
 
 class TextureField(MPIField):
