@@ -14,9 +14,9 @@ from cmc.config import MLPFieldConfig, PyramidFieldConfig
 from cmc.errors import ConfigError
 from cmc.eval.metrics import psnr
 from cmc.geometry.cameras import intrinsics
-from cmc.geometry.planes import homographies_ref_from_tgt, pixel_centers, plane_depths
+from cmc.geometry.planes import homographies_ref_from_tgt, pixel_centers, plane_depths, texel_grid
 from cmc.mpi._reference import render_rays_reference, render_texture_image_reference
-from cmc.mpi.fields import MLPField, PyramidPlaneField, TextureField
+from cmc.mpi.fields import MLPField, PyramidPlaneField, TextureField, ViewColour, flatness
 from cmc.mpi.rendering import (
     MPIFrame,
     composite,
@@ -533,3 +533,97 @@ def test_a_model_with_fewer_planes_than_the_presets_base_groups_gets_one_base_pe
     with torch.no_grad():
         out = model.render(scene.cameras.K[0], scene.cameras.world_from_cam[0], 32, 24)
     assert psnr(out.rgb, scene.images[0]) > 20  # untrained: each base starts as the photo
+
+
+# --- the view-dependent colour term of training (ViewColour) ---------------------------------------
+
+
+def _view_colour(dtype: torch.dtype, slope_scale: float = 0.1, groups: int = 2) -> tuple[MPIFrame, ViewColour]:
+    """The test frame and a ViewColour on it over a flat grey photo (its mask 1 everywhere)."""
+    frame = make_frame(dtype)
+    photo = torch.full((3, *frame.extent), 0.5, dtype=dtype)
+    return frame, ViewColour(groups, (6, 8), frame.grid_from_camera(dtype), slope_scale, photo).to(dtype)
+
+
+def test_view_colour_is_zero_for_the_reference_camera_and_follows_a_sideways_cameras_parallax() -> None:
+    """A point X on plane k (reference frame) seen from a camera moved by b along x: the ray's
+    slope differs from the reference ray's by (-b / z_k, 0); the term is the texture's x
+    coefficient times that over ``slope_scale``, per channel, and 0 from the reference camera."""
+    frame, vc = _view_colour(torch.float64, slope_scale=0.1, groups=1)
+    with torch.no_grad():
+        vc.texture.zero_()
+        vc.texture[0, 0] = 2.0  # red's x coefficient
+        vc.texture[0, 3] = -1.0  # green's y coefficient
+    z = frame.depths  # [D]
+    g = torch.Generator().manual_seed(0)
+    xy_over_z = (torch.rand(10, 2, generator=g, dtype=torch.float64) - 0.5) * 0.6  # well inside the extent
+    X = torch.cat([xy_over_z[None] * z[:, None, None], z[:, None, None].expand(-1, 10, 1)], -1)  # [D, R, 3]
+    M = frame.grid_from_camera(torch.float64)
+    grid = torch.einsum("ij,dri->drj", M.T, X / X[..., 2:3]).contiguous()  # [D, R, 2]
+    bounds = [0, D]
+    for b in (0.0, 0.3):
+        # The rays through plane k's points from the camera at (b, 0, 0), one plane at a time.
+        logits = []
+        for k in range(D):
+            d = X[k] - torch.tensor([b, 0.0, 0.0], dtype=torch.float64)
+            plane_k = grid[k : k + 1].expand(D, -1, -1).contiguous()
+            with torch.no_grad():
+                out = vc.logits(plane_k, d / d.norm(dim=-1, keepdim=True), bounds, None)
+            logits.append(out[k])  # [3, R]
+        logits = torch.stack(logits)  # [D, 3, R]
+        expected_x = (-b / z / 0.1).clamp(-2, 2)[:, None].expand(-1, 10)
+        torch.testing.assert_close(logits[:, 0], 2.0 * expected_x)
+        torch.testing.assert_close(logits[:, 1], torch.zeros_like(expected_x))  # green's y: no vertical parallax
+        torch.testing.assert_close(logits[:, 2], torch.zeros_like(expected_x))
+    assert float(logits[:, 0].abs().min()) > 0.1  # the moved camera's term is not vacuous
+
+
+def test_view_colour_compiled_matches_grid_sample_in_values_and_gradients() -> None:
+    """The CPU's compiled sampler (float32) against ``grid_sample`` (float64), with a ``where``."""
+    g = torch.Generator().manual_seed(1)
+    grid = torch.rand(D, 50, 2, generator=g, dtype=torch.float64) * 2.2 - 1.1
+    dirs = torch.randn(50, 3, generator=g, dtype=torch.float64) * 0.2
+    dirs[:, 2] += 1
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
+    where = torch.rand(D, 50, generator=g) > 0.3
+    weights = torch.randn(D, 3, 50, generator=g, dtype=torch.float64)
+    results = []
+    for dtype in (torch.float32, torch.float64):
+        _, vc = _view_colour(dtype)
+        with torch.no_grad():
+            vc.texture.copy_(torch.randn(vc.texture.shape, generator=torch.Generator().manual_seed(2)))
+        out = vc.logits(grid.to(dtype), dirs.to(dtype), [0, 2, D], where)
+        (grad,) = torch.autograd.grad((out * weights.to(dtype)).sum(), [vc.texture])
+        results.append((out.double(), grad.double()))
+    torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(results[0][1], results[1][1], rtol=1e-4, atol=1e-4)
+    assert bool((results[0][0][~where[:, None].expand(-1, 3, -1)] == 0).all())
+    assert float(results[0][0].abs().max()) > 0.1 and float(results[0][1].abs().max()) > 0.1
+
+
+def test_flatness_is_one_on_a_flat_photo_part_and_low_on_its_textured_part() -> None:
+    g = torch.Generator().manual_seed(3)
+    photo = torch.full((3, 48, 64), 0.4)
+    photo[:, :, 24:] = torch.rand(3, 48, 40, generator=g)  # textured right of x = 24
+    mask = flatness(photo, (6, 8))  # 8 x 8 pixels a texel: columns 0-2 flat, 3 on the edge, 4-7 textured
+    assert float(mask[:, :2].min()) > 0.99
+    assert float(mask[:, 4:].max()) < 0.6 and float(mask[:, 4:].mean()) < 0.45
+
+
+def test_bakes_and_the_reference_camera_leave_the_view_colour_out() -> None:
+    """A field whose ViewColour texture is far from 0 bakes as the same field without it and
+    renders the same from its reference camera, but not from a moved camera."""
+    frame, vc = _view_colour(torch.float32)
+    with torch.no_grad():
+        vc.texture.normal_(0, 3, generator=torch.Generator().manual_seed(4))
+    plain = random_pyramid(5, torch.float32)
+    with_term = random_pyramid(5, torch.float32)
+    with_term.view_colour = vc
+    h, w = frame.extent
+    g, dirs = texel_grid(h, w), torch.zeros(h * w, 3)
+    with torch.no_grad():
+        assert torch.equal(plain.on_texel_grid(g, frame.plane_z, dirs), with_term.on_texel_grid(g, frame.plane_z, dirs))
+        for target, same in (("reference", True), ("moved", False)):
+            K_t, P_t = (torch.as_tensor(a, dtype=torch.float32) for a in target_cameras()[target])
+            a, b = (render_rays(f, frame, K_t, P_t, pixel_centers(W, H)).rgb for f in (plain, with_term))
+            assert (float((a - b).abs().max()) < 1e-5) == same, target

@@ -17,7 +17,9 @@ Fields:
   coarse levels learn first and act as a smoothness prior, and a sample costs one texture's
   taps, not one per level. With one base for all planes, a surface hidden behind a nearer one in the
   reference photo would have that nearer surface's fine texture wherever another view sees it;
-  a base per group of planes gives it its own.
+  a base per group of planes gives it its own. While training, a :class:`ViewColour` may add to
+  the colour what changes with the direction of the ray (the other photos' reflections on smooth
+  surfaces); bakes hold the reference camera's colours.
 * :class:`TextureField` -- fixed RGBA textures, the form a baked MPI takes.
 
 All fields keep the farthest plane opaque (alpha = 1) so that every covered ray is fully
@@ -173,7 +175,7 @@ class ViewColour(nn.Module):
         super().__init__()
         self.texture = nn.Parameter(torch.zeros(groups, 6, *size, device=photo.device))
         self.register_buffer("mask", flatness(photo, size))
-        M = grid_from_camera.float()
+        M = grid_from_camera.to(photo.dtype)
         self.register_buffer("focal", torch.stack([M[0, 0], M[1, 1]]))  # grid units per unit slope
         self.register_buffer("centre", M[:, 2].clone())  # grid coordinates of the optical axis
         self.slope_scale = float(slope_scale)
