@@ -601,13 +601,17 @@ def test_view_colour_compiled_matches_grid_sample_in_values_and_gradients() -> N
     assert float(results[0][0].abs().max()) > 0.1 and float(results[0][1].abs().max()) > 0.1
 
 
-def test_flatness_is_one_on_a_flat_photo_part_and_low_on_its_textured_part() -> None:
+def test_flatness_is_one_on_a_flat_photo_part_and_falls_with_the_gradient() -> None:
+    """A photo flat on its left, a ramp of 0.01 grey levels per pixel in the middle (1 / e where
+    the whole texel lies on it) and noise on its right."""
     g = torch.Generator().manual_seed(3)
     photo = torch.full((3, 48, 64), 0.4)
-    photo[:, :, 24:] = torch.rand(3, 48, 40, generator=g)  # textured right of x = 24
-    mask = flatness(photo, (6, 8))  # 8 x 8 pixels a texel: columns 0-2 flat, 3 on the edge, 4-7 textured
+    photo[:, :, 16:48] = 0.4 + 0.01 * torch.arange(32.0)  # texel columns 2-5
+    photo[:, :, 48:] = torch.rand(3, 48, 16, generator=g)  # columns 6 and 7
+    mask = flatness(photo, (6, 8))  # 8 x 8 pixels a texel; the image border's gradient counts 0
     assert float(mask[:, :2].min()) > 0.99
-    assert float(mask[:, 4:].max()) < 0.6 and float(mask[:, 4:].mean()) < 0.45
+    torch.testing.assert_close(mask[1:-1, 3:5], torch.full((4, 2), math.exp(-1)))
+    assert float(mask[:, 6:].max()) < 1e-3
 
 
 def test_bakes_and_the_reference_camera_leave_the_view_colour_out() -> None:
