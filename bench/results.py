@@ -22,9 +22,9 @@ HERE = Path(__file__).resolve().parent
 REPORTS = HERE / "reports"
 
 # The current report of each kind (in reports/current).
-SCENE_REPORTS = {s: f"floor005_test_{s}.json" for s in ("fern", "room", "trex")}
-VAL_REPORTS = {s: f"floor005_val_{s}.json" for s in ("fern", "room", "trex")}
-SYNTHETIC_REPORT = "floor005_synthetic.json"
+SCENE_REPORTS = {s: f"viewcolour_test_{s}.json" for s in ("fern", "room", "trex")}
+VAL_REPORTS = {s: f"viewcolour_abs_val_{s}.json" for s in ("fern", "room", "trex")}
+SYNTHETIC_REPORT = "viewcolour_abs_synthetic.json"
 POSE_REPORTS = [  # (scene, report): a scene may have a row per kind of photo
     ("fern", "poses_e2e_fern_floor005.json"),
     ("room", "poses_e2e_room_floor005.json"),

@@ -46,8 +46,9 @@ class PyramidFieldConfig:
     hidden_colour_everywhere: bool = True
     # > 0: while training, each group's colour also changes with the angle between a ray and the
     # reference camera's ray through the same point, by a texture at this scale of the plane
-    # extent, held off where the photo is textured (cmc.mpi.fields.ViewColour); bakes and renders
-    # show the reference camera's colours. 0: colour is the same from every direction.
+    # extent, held off where the photo is textured (cmc.mpi.fields.ViewColour: the other photos'
+    # reflections on smooth surfaces do not bend the geometry); bakes and renders show the
+    # reference camera's colours. 0: colour is the same from every direction.
     view_colour_scale: float = 0.125
 
 
@@ -215,8 +216,11 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       the views do not depend on how loose the bounds are), each input
       photo's colour response learnt and renders shown in their mean
       (``model.exposure_compensation``: photos shot at different exposures do not bend the
-      geometry), 300 steps, no colour gradient for a plane sample weighing under 1e-3 in its ray
-      (``colour_grad_min_weight``: the same views, a shorter backward pass).
+      geometry), while training a colour term that follows the ray's direction where the photo is
+      untextured (``model.pyramid.view_colour_scale``: reflections the other photos see are not
+      explained by geometry; bakes hold the reference camera's colours), 300 steps, no colour
+      gradient for a plane sample weighing under 1e-3 in its ray (``colour_grad_min_weight``: the
+      same views, a shorter backward pass).
     """
     if name == "paper":
         cfg = TrainConfig(
