@@ -47,8 +47,8 @@ class PyramidFieldConfig:
     # > 0: while training, each group's colour also changes with the angle between a ray and the
     # reference camera's ray through the same point, by a texture at this scale of the plane
     # extent, held off where the photo is textured (cmc.mpi.fields.ViewColour: the other photos'
-    # reflections on smooth surfaces do not bend the geometry); bakes and renders show the
-    # reference camera's colours. 0: colour is the same from every direction.
+    # reflections on smooth surfaces do not bend the geometry); bakes hold the reference
+    # camera's colours. 0: colour is the same from every direction.
     view_colour_scale: float = 0.125
 
 

@@ -576,6 +576,9 @@ def test_view_colour_is_zero_for_the_reference_camera_and_follows_a_sideways_cam
         torch.testing.assert_close(logits[:, 1], torch.zeros_like(expected_x))  # green's y: no vertical parallax
         torch.testing.assert_close(logits[:, 2], torch.zeros_like(expected_x))
     assert float(logits[:, 0].abs().min()) > 0.1  # the moved camera's term is not vacuous
+    no_direction = torch.zeros(10, 3, dtype=torch.float64)
+    with torch.no_grad():  # the zero vector (no direction): the reference camera's colours
+        assert torch.equal(vc.logits(grid, no_direction, bounds, None), torch.zeros(D, 3, 10, dtype=torch.float64))
 
 
 def test_view_colour_compiled_matches_grid_sample_in_values_and_gradients() -> None:

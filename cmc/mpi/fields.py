@@ -155,13 +155,15 @@ class ViewColour(nn.Module):
     At a plane sample, ``delta`` [2] is the target ray's slope (x / z, y / z in the reference
     camera's frame) minus the slope of the reference camera's ray through the same point, in
     units of ``slope_scale`` (a typical parallax: the inputs' mean baseline over a typical scene
-    depth), clamped to [-2, 2]; it is 0 for every ray of the reference photo. The colour logits
-    gain ``A(g) @ delta`` per channel, A a [G, 3 x 2, h, w] texture per group of planes (bilinear,
+    depth), clamped to [-2, 2]; it is 0 for every ray of the reference photo, and for a direction
+    that does not point into the planes (z <= 0: e.g. the zero vector, for no direction). The
+    colour logits gain ``A(g) @ delta`` per channel, A a [G, 3 x 2, h, w] texture per group of planes (bilinear,
     starting at 0) times :func:`flatness` of the reference photo, so that the other photos'
     reflections and highlights on smooth surfaces need not be explained by geometry, while a
     textured surface's change with the view, which is what a wrong depth looks like, still moves
-    the geometry. Renders and bakes show the reference camera's colours (delta = 0): the term is
-    a nuisance the training explains away, not view-dependent appearance to show.
+    the geometry. Bakes hold the reference camera's colours (delta = 0), and so does every render
+    the service makes from them: the term is a nuisance the training explains away, not
+    view-dependent appearance to show (``CMCModel.render`` of the trained model still adds it).
 
     Args:
         groups: G; size: (h, w) of the texture; grid_from_camera: [2, 3] the frame's
@@ -190,7 +192,9 @@ class ViewColour(nn.Module):
         planes by ``bounds``); with ``where`` ([D, R] bool) only at the samples it marks, 0
         elsewhere."""
         ref_slope = (grid - self.centre) / self.focal  # [D, R, 2]
-        delta = ((dirs[:, :2] / dirs[:, 2:3] - ref_slope) / self.slope_scale).clamp(-2, 2)
+        ahead = dirs[:, 2:3] > 0  # a ray that meets the planes; not so the zero direction "any view"
+        slope = torch.where(ahead, dirs[:, :2] / torch.where(ahead, dirs[:, 2:3], 1.0), ref_slope)
+        delta = ((slope - ref_slope) / self.slope_scale).clamp(-2, 2)
         texture = self.texture * self.mask
         if plane_sampling.supported(grid, [texture]):
             G = len(bounds) - 1
