@@ -157,11 +157,11 @@ class ViewColour(nn.Module):
     units of ``slope_scale`` (a typical parallax: the inputs' mean baseline over a typical scene
     depth), clamped to [-2, 2]; it is 0 for every ray of the reference photo, and for a direction
     that does not point into the planes (z <= 0: e.g. the zero vector, for no direction). The
-    colour logits gain ``A(g) @ delta`` per channel, A a [G, 3 x 2, h, w] texture per group of planes (bilinear,
-    starting at 0) times :func:`flatness` of the reference photo, so that the other photos'
-    reflections and highlights on smooth surfaces need not be explained by geometry, while a
-    textured surface's change with the view, which is what a wrong depth looks like, still moves
-    the geometry. Bakes hold the reference camera's colours (delta = 0), and so does every render
+    colour logits gain ``A(g) @ delta`` per channel, A a [G, 3 x 2, h, w] texture per group of
+    planes (bilinear, starting at 0) times :func:`flatness` of the reference photo, so that the
+    other photos' reflections and highlights on smooth surfaces need not be explained by
+    geometry, while a textured surface's change with the view, which is what a wrong depth looks
+    like, still moves the geometry. Bakes hold the reference camera's colours (delta = 0), and so does every render
     the service makes from them: the term is a nuisance the training explains away, not
     view-dependent appearance to show (``CMCModel.render`` of the trained model still adds it).
 
