@@ -15,7 +15,7 @@ from cmc.data.datasets import Scene
 from cmc.errors import ConfigError
 from cmc.geometry.planes import content_plane_depths, mean_baseline, occupied_depth_range, texel_grid
 from cmc.method.planesweep import alpha_from_weights, plane_sweep_weights
-from cmc.mpi.fields import MLPField, MPIField, PyramidPlaneField, ViewColour, plane_group_bounds
+from cmc.mpi.fields import MLPField, MPIField, PyramidPlaneField, ViewColour, level_size, plane_group_bounds
 from cmc.mpi.rendering import ImageOutput, MPIFrame, render_image
 
 
@@ -228,7 +228,8 @@ class CMCModel(nn.Module):
             if cfg.field_type == "mlp":
                 fields.append(MLPField(cfg.num_planes, cfg.mlp))
             elif cfg.field_type == "pyramid":
-                init_alpha, rgb = None, padded_reference(scene.images[i], fr)
+                photo = padded_reference(scene.images[i], fr)
+                init_alpha, rgb = None, photo
                 if cfg.pyramid.init_from_sweep:
                     probs = sweep_probabilities(self.frames, images, i, cfg)
                     init_alpha = alpha_from_weights(probs)
@@ -236,8 +237,7 @@ class CMCModel(nn.Module):
                         rgb = hidden_layer_colours(rgb, probs.argmax(0), cfg.num_planes, cfg.pyramid.base_groups)
                 view_colour = None
                 if cfg.pyramid.view_colour_scale > 0:
-                    size = tuple(max(2, round(n * cfg.pyramid.view_colour_scale)) for n in fr.extent)
-                    photo = padded_reference(scene.images[i], fr)
+                    size = level_size(*fr.extent, cfg.pyramid.view_colour_scale)
                     view_colour = ViewColour(cfg.pyramid.base_groups, size, fr.grid_from_camera(), slope_scale, photo)
                 fields.append(PyramidPlaneField(cfg.num_planes, *fr.extent, cfg.pyramid, rgb, init_alpha, view_colour))
             else:

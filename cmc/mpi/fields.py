@@ -115,6 +115,16 @@ def plane_group_bounds(num_planes: int, groups: int) -> list[int]:
     return [-(-i * num_planes // groups) for i in range(groups + 1)]
 
 
+def plane_groups(bounds: list[int]) -> list[int]:
+    """The group of each plane, from the groups' bounds (:func:`plane_group_bounds`)."""
+    return [i for i in range(len(bounds) - 1) for _ in range(bounds[i], bounds[i + 1])]
+
+
+def level_size(height: int, width: int, scale: float) -> tuple[int, int]:
+    """(h, w) of a texture at ``scale`` of a height x width plane extent (at least 2 x 2)."""
+    return max(2, round(height * scale)), max(2, round(width * scale))
+
+
 def _grid_sample_groups(texture: torch.Tensor, grid: torch.Tensor, bounds: list[int], mode: str) -> torch.Tensor:
     """Texture i of ``texture`` [G, C, h, w] sampled (``grid_sample``, ``mode``) at the points of
     planes [bounds[i], bounds[i + 1]) of ``grid`` [D, R, 2] -> [D, C, R] (any device)."""
@@ -197,9 +207,7 @@ class ViewColour(nn.Module):
         delta = ((slope - ref_slope) / self.slope_scale).clamp(-2, 2)
         texture = self.texture * self.mask
         if plane_sampling.supported(grid, [texture]):
-            G = len(bounds) - 1
-            groups = [i for i in range(G) for _ in range(bounds[i], bounds[i + 1])]
-            a = plane_sampling.sample_planes(grid, groups, [texture.contiguous()], where=where)
+            a = plane_sampling.sample_planes(grid, plane_groups(bounds), [texture.contiguous()], where=where)
         else:
             a = _grid_sample_groups(texture, grid, bounds, "bilinear")
             if where is not None:
@@ -248,7 +256,7 @@ class PyramidPlaneField(MPIField):
         self.colour_interpolation = cfg.base_interpolation
 
         def size(s: float) -> tuple[int, int]:
-            return max(2, round(height * s)), max(2, round(width * s))
+            return level_size(height, width, s)
 
         if not 1 <= cfg.base_groups <= num_planes:
             raise ConfigError(f"base_groups must be 1 to num_planes ({num_planes}), got {cfg.base_groups}")
@@ -318,7 +326,7 @@ class PyramidPlaneField(MPIField):
         bounds = plane_group_bounds(D, G)  # plane k takes base k * G // D
         residual = plane_sampling.fold_levels(list(self.colour_levels)) if self.colour_levels else None
         if plane_sampling.supported(grid, self.parameters()):  # the compiled CPU sampler
-            groups = [i for i in range(G) for _ in range(bounds[i], bounds[i + 1])]
+            groups = plane_groups(bounds)
             if same_points and where is None:
                 base = plane_sampling.sample_planes(grid[:G], range(G), [self.base], self.cfg.base_interpolation)
                 base = base[groups]
