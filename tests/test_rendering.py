@@ -582,26 +582,39 @@ def test_view_colour_is_zero_for_the_reference_camera_and_follows_a_sideways_cam
 
 
 def test_view_colour_compiled_matches_grid_sample_in_values_and_gradients() -> None:
-    """The CPU's compiled sampler (float32) against ``grid_sample`` (float64), with a ``where``."""
+    """The CPU's fused pass (float32) against the torch formula with ``grid_sample`` (float64),
+    with a ``where``, a photo textured on its right (mask 0 there: samples skipped), the
+    reference camera's own rays (delta 0) and rays that do not point into the planes."""
     g = torch.Generator().manual_seed(1)
-    grid = torch.rand(D, 50, 2, generator=g, dtype=torch.float64) * 2.2 - 1.1
-    dirs = torch.randn(50, 3, generator=g, dtype=torch.float64) * 0.2
+    frame = make_frame(torch.float64)
+    h, w = frame.extent
+    photo = torch.full((3, h, w), 0.5, dtype=torch.float64)
+    photo[:, :, w // 2 :] = torch.rand(3, h, w - w // 2, generator=g, dtype=torch.float64)
+    grid = torch.rand(D, 60, 2, generator=g, dtype=torch.float64) * 2.2 - 1.1
+    dirs = torch.randn(60, 3, generator=g, dtype=torch.float64) * 0.2
     dirs[:, 2] += 1
-    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
-    where = torch.rand(D, 50, generator=g) > 0.3
-    weights = torch.randn(D, 3, 50, generator=g, dtype=torch.float64)
+    dirs[50:55, 2] = -dirs[50:55, 2]  # away from the planes
+    M = frame.grid_from_camera(torch.float64)
+    dirs[55:] = torch.cat([(grid[0, 55:] - M[:, 2]) / M.diagonal()[:2], torch.ones(5, 1, dtype=torch.float64)], 1)
+    grid[:, 55:] = grid[0, 55:]  # the reference camera's rays: the same point on every plane
+    where = torch.rand(D, 60, generator=g) > 0.3
+    weights = torch.randn(D, 3, 60, generator=g, dtype=torch.float64)
     results = []
     for dtype in (torch.float32, torch.float64):
-        _, vc = _view_colour(dtype)
+        vc = ViewColour(2, (6, 8), frame.grid_from_camera(dtype), 0.1, photo.to(dtype)).to(dtype)
         with torch.no_grad():
             vc.texture.copy_(torch.randn(vc.texture.shape, generator=torch.Generator().manual_seed(2)))
         out = vc.logits(grid.to(dtype), dirs.to(dtype), [0, 2, D], where)
         (grad,) = torch.autograd.grad((out * weights.to(dtype)).sum(), [vc.texture])
-        results.append((out.double(), grad.double()))
+        results.append((out.detach().double(), grad.double()))
+    assert 0 < float((vc.mask == 0).double().mean()) < 0.6  # the textured half's texels, some of them
     torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(results[0][1], results[1][1], rtol=1e-4, atol=1e-4)
-    assert bool((results[0][0][~where[:, None].expand(-1, 3, -1)] == 0).all())
+    for out, _ in results:
+        assert bool((out[~where[:, None].expand(-1, 3, -1)] == 0).all())
+        assert bool((out[:, :, 50:] == 0).all())  # no direction into the planes, or no parallax
     assert float(results[0][0].abs().max()) > 0.1 and float(results[0][1].abs().max()) > 0.1
+    assert float(results[0][1][:, :, :, -1].abs().max()) == 0  # texels on the textured right learn nothing
 
 
 def test_flatness_is_one_on_a_flat_photo_part_and_falls_with_the_gradient() -> None:

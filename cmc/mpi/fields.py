@@ -143,6 +143,7 @@ def _grid_sample_groups(texture: torch.Tensor, grid: torch.Tensor, bounds: list[
 # walls and glossy table lie below it, most of fern's, trex's and the synthetic set's textures far
 # above (their photos' median texels 0.007 against 0.03-0.05; bench/experiments.toml).
 FLAT_GRADIENT = 0.01
+MASK_FLOOR = 1e-4  # ViewColour's mask below this is 0 (a texel gradient above about 3 FLAT_GRADIENT)
 
 
 def flatness(photo: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
@@ -165,10 +166,12 @@ class ViewColour(nn.Module):
     At a plane sample, ``delta`` [2] is the target ray's slope (x / z, y / z in the reference
     camera's frame) minus the slope of the reference camera's ray through the same point, in
     units of ``slope_scale`` (a typical parallax: the inputs' mean baseline over a typical scene
-    depth), clamped to [-2, 2]; it is 0 for every ray of the reference photo, and for a direction
-    that does not point into the planes (z <= 0: e.g. the zero vector, for no direction). The
-    colour logits gain ``A(g) @ delta`` per channel, A a [G, 3 x 2, h, w] texture per group of
-    planes (bilinear, starting at 0) times :func:`flatness` of the reference photo, so that the
+    depth), clamped to [-2, 2]; it is 0 for every ray of the reference photo (below
+    :data:`cmc.mpi.plane_sampling.DELTA_FLOOR` on both axes: rounding), and for a direction that
+    does not point into the planes (z <= 0: e.g. the zero vector, for no direction). The colour
+    logits gain ``A(g) @ delta`` per channel, A a [G, 3 x 2, h, w] texture per group of planes
+    (bilinear, starting at 0) times :func:`flatness` of the reference photo (0 below
+    :data:`MASK_FLOOR`, where the compiled sampler skips the samples), so that the
     other photos' reflections and highlights on smooth surfaces need not be explained by
     geometry, while a textured surface's change with the view, which is what a wrong depth looks
     like, still moves the geometry. Bakes hold the reference camera's colours (delta = 0), and so does every render
@@ -191,7 +194,8 @@ class ViewColour(nn.Module):
     ):
         super().__init__()
         self.texture = nn.Parameter(torch.zeros(groups, 6, *size, device=photo.device))
-        self.register_buffer("mask", flatness(photo, size))
+        mask = flatness(photo, size)
+        self.register_buffer("mask", torch.where(mask < MASK_FLOOR, 0.0, mask))
         M = grid_from_camera.to(photo.dtype)
         self.register_buffer("focal", torch.stack([M[0, 0], M[1, 1]]))  # grid units per unit slope
         self.register_buffer("centre", M[:, 2].clone())  # grid coordinates of the optical axis
@@ -201,17 +205,20 @@ class ViewColour(nn.Module):
         """Colour logits [D, 3, R] at grid [D, R, 2] for rays along dirs [R, 3] (the groups'
         planes by ``bounds``); with ``where`` ([D, R] bool) only at the samples it marks, 0
         elsewhere."""
+        texture = self.texture * self.mask
+        if plane_sampling.supported(grid, [texture, dirs]):  # the compiled CPU pass
+            groups = plane_groups(bounds)
+            args = (self.mask, self.centre, self.focal, self.slope_scale, where)
+            return plane_sampling.sample_view_colour(grid, dirs, groups, texture, *args)
         ref_slope = (grid - self.centre) / self.focal  # [D, R, 2]
         ahead = dirs[:, 2:3] > 0  # a ray that meets the planes; not so the zero direction "any view"
         slope = torch.where(ahead, dirs[:, :2] / torch.where(ahead, dirs[:, 2:3], 1.0), ref_slope)
-        delta = ((slope - ref_slope) / self.slope_scale).clamp(-2, 2)
-        texture = self.texture * self.mask
-        if plane_sampling.supported(grid, [texture]):
-            a = plane_sampling.sample_planes(grid, plane_groups(bounds), [texture.contiguous()], where=where)
-        else:
-            a = _grid_sample_groups(texture, grid, bounds, "bilinear")
-            if where is not None:
-                a = torch.where(where[:, None], a, torch.zeros_like(a))
+        delta = (slope - ref_slope) / self.slope_scale
+        tiny = (delta.abs() < plane_sampling.DELTA_FLOOR).all(-1, keepdim=True)
+        delta = torch.where(tiny, 0.0, delta.clamp(-2, 2))
+        a = _grid_sample_groups(texture, grid, bounds, "bilinear")
+        if where is not None:
+            a = torch.where(where[:, None], a, torch.zeros_like(a))
         return a[:, 0::2] * delta[:, None, :, 0] + a[:, 1::2] * delta[:, None, :, 1]
 
 

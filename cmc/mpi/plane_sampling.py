@@ -69,6 +69,40 @@ def _taps(gx, gy, H, W):
 
 
 @numba.njit(inline="always", **_JIT)
+def _tap_sum(tex, t, c, taps):
+    """The bilinear sample of tex[t, c] at :func:`_taps`' footprint ``taps`` (zero outside)."""
+    x0, y0, w00, w01, w10, w11, vx0, vx1, vy0, vy1 = taps
+    s = np.float32(0)
+    if vy0:
+        if vx0:
+            s += w00 * tex[t, c, y0, x0]
+        if vx1:
+            s += w01 * tex[t, c, y0, x0 + 1]
+    if vy1:
+        if vx0:
+            s += w10 * tex[t, c, y0 + 1, x0]
+        if vx1:
+            s += w11 * tex[t, c, y0 + 1, x0 + 1]
+    return s
+
+
+@numba.njit(inline="always", **_JIT)
+def _tap_add(grad_tex, t, c, taps, g):
+    """The transpose of :func:`_tap_sum`: grad_tex[t, c] += each tap's weight times g."""
+    x0, y0, w00, w01, w10, w11, vx0, vx1, vy0, vy1 = taps
+    if vy0:
+        if vx0:
+            grad_tex[t, c, y0, x0] += w00 * g
+        if vx1:
+            grad_tex[t, c, y0, x0 + 1] += w01 * g
+    if vy1:
+        if vx0:
+            grad_tex[t, c, y0 + 1, x0] += w10 * g
+        if vx1:
+            grad_tex[t, c, y0 + 1, x0 + 1] += w11 * g
+
+
+@numba.njit(inline="always", **_JIT)
 def _gather_bilinear(tex, t, gx, gy, out, k, r):
     """out[k, c, r] += bilinear sample of tex[t, c] at grid point (gx, gy), for every channel c."""
     C, H, W = tex.shape[1], tex.shape[2], tex.shape[3]
@@ -301,6 +335,159 @@ def sample_planes(
     return _SamplePlanes.apply(grid.contiguous(), mask, pt, mode == "bicubic", *textures)
 
 
+# A ray's view-colour delta (cmc.mpi.fields.ViewColour) below this on both axes counts as 0: the
+# reference photo's own rays, whose delta is 0 up to rounding (about 1e-6).
+DELTA_FLOOR = 1e-4
+
+
+@numba.njit(inline="always", **_JIT)
+def _view_delta(gx, gy, dirs, r, frame):
+    """ViewColour's delta (x, y) of the sample at grid point (gx, gy) on ray r of ``dirs`` [R, 3]
+    (the ray's slope minus the reference ray's through the point, times frame[4], clamped to
+    [-2, 2]), with frame = (centre x, centre y, focal x, focal y, 1 / slope_scale); (0, 0) for a
+    ray that does not point into the planes or a delta below DELTA_FLOOR."""
+    z = dirs[r, 2]
+    if not z > 0:
+        return np.float32(0), np.float32(0)
+    dx = (dirs[r, 0] / z - (gx - frame[0]) / frame[2]) * frame[4]
+    dy = (dirs[r, 1] / z - (gy - frame[1]) / frame[3]) * frame[4]
+    if abs(dx) < DELTA_FLOOR and abs(dy) < DELTA_FLOOR:
+        return np.float32(0), np.float32(0)
+    two = np.float32(2)
+    return min(max(dx, -two), two), min(max(dy, -two), two)
+
+
+@numba.njit(inline="always", **_JIT)
+def _any_tap(mask, taps):
+    """Whether any in-bounds texel of :func:`_taps`' footprint ``taps`` is nonzero in ``mask`` [h, w]."""
+    x0, y0, _, _, _, _, vx0, vx1, vy0, vy1 = taps
+    return (
+        (vy0 and vx0 and mask[y0, x0] != 0)
+        or (vy0 and vx1 and mask[y0, x0 + 1] != 0)
+        or (vy1 and vx0 and mask[y0 + 1, x0] != 0)
+        or (vy1 and vx1 and mask[y0 + 1, x0 + 1] != 0)
+    )
+
+
+@numba.njit(**_JIT)
+def _view_forward(tex, mask, grid, dirs, frame, plane_texture, out, p0, p1, where):
+    """out[k, c, r] = tex[t, 2c] * dx + tex[t, 2c + 1] * dy, each sampled bilinearly at grid[k, r]
+    (t = plane_texture[k], (dx, dy) = :func:`_view_delta`), for k in [p0, p1); 0 where ``where``
+    (unless empty) is False, the delta is 0 or ``mask`` is 0 at every tap."""
+    H, W = tex.shape[2], tex.shape[3]
+    masked = where.shape[0] > 0
+    for k in range(p0, p1):
+        t = plane_texture[k]
+        for r in range(grid.shape[1]):
+            for c in range(3):
+                out[k, c, r] = 0
+            if masked and not where[k, r]:
+                continue
+            gx, gy = grid[k, r, 0], grid[k, r, 1]
+            dx, dy = _view_delta(gx, gy, dirs, r, frame)
+            if dx == 0 and dy == 0:
+                continue
+            taps = _taps(gx, gy, H, W)
+            if not _any_tap(mask, taps):
+                continue
+            for c in range(3):
+                out[k, c, r] = _tap_sum(tex, t, 2 * c, taps) * dx + _tap_sum(tex, t, 2 * c + 1, taps) * dy
+
+
+@numba.njit(**_JIT)
+def _view_backward(grad_out, mask, grid, dirs, frame, plane_texture, grad_tex, p0, p1, where):
+    """grad_tex[t] = the transpose of :func:`_view_forward` applied to grad_out, summed over the
+    planes k of texture t, for the textures of planes [p0, p1), which no other range holds."""
+    grad_tex[plane_texture[p0] : plane_texture[p1 - 1] + 1] = 0
+    H, W = grad_tex.shape[2], grad_tex.shape[3]
+    masked = where.shape[0] > 0
+    for k in range(p0, p1):
+        t = plane_texture[k]
+        for r in range(grid.shape[1]):
+            if masked and not where[k, r]:
+                continue
+            gx, gy = grid[k, r, 0], grid[k, r, 1]
+            dx, dy = _view_delta(gx, gy, dirs, r, frame)
+            if dx == 0 and dy == 0:
+                continue
+            taps = _taps(gx, gy, H, W)
+            if not _any_tap(mask, taps):
+                continue
+            for c in range(3):
+                g = grad_out[k, c, r]
+                if g != 0:
+                    _tap_add(grad_tex, t, 2 * c, taps, g * dx)
+                    _tap_add(grad_tex, t, 2 * c + 1, taps, g * dy)
+
+
+@numba.njit(parallel=True, **_JIT)
+def _view_forward_parallel(tex, mask, grid, dirs, frame, plane_texture, out, cuts, where):
+    for i in numba.prange(len(cuts) - 1):
+        _view_forward(tex, mask, grid, dirs, frame, plane_texture, out, cuts[i], cuts[i + 1], where)
+
+
+@numba.njit(parallel=True, **_JIT)
+def _view_backward_parallel(grad_out, mask, grid, dirs, frame, plane_texture, grad_tex, cuts, where):
+    for i in numba.prange(len(cuts) - 1):
+        _view_backward(grad_out, mask, grid, dirs, frame, plane_texture, grad_tex, cuts[i], cuts[i + 1], where)
+
+
+class _SampleViewColour(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, grid, dirs, frame, mask, where, plane_texture, texture):  # type: ignore[override]
+        D, R = grid.shape[:2]
+        out = torch.empty(D, 3, R)
+        numba.set_num_threads(min(numba.config.NUMBA_NUM_THREADS, torch.get_num_threads()))
+        chunks = _chunks(plane_texture, numba.get_num_threads())
+        args = (mask.numpy(), grid.numpy(), dirs.numpy(), frame, plane_texture)
+        with kernel_cache.PARALLEL_LAUNCH:
+            _view_forward_parallel(texture.detach().numpy(), *args, out.numpy(), chunks, where)
+        ctx.save_for_backward(grid, dirs, mask)
+        ctx.frame, ctx.where, ctx.plane_texture, ctx.chunks, ctx.shape = frame, where, plane_texture, chunks, texture.shape
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):  # type: ignore[override]
+        grid, dirs, mask = ctx.saved_tensors
+        grad = torch.empty(ctx.shape)
+        args = (mask.numpy(), grid.numpy(), dirs.numpy(), ctx.frame, ctx.plane_texture)
+        with kernel_cache.PARALLEL_LAUNCH:
+            _view_backward_parallel(grad_out.contiguous().numpy(), *args, grad.numpy(), ctx.chunks, ctx.where)
+        grad[np.setdiff1d(np.arange(ctx.shape[0]), ctx.plane_texture)] = 0
+        return None, None, None, None, None, None, grad
+
+
+def sample_view_colour(
+    grid: torch.Tensor,
+    dirs: torch.Tensor,
+    plane_texture: Sequence[int],
+    texture: torch.Tensor,
+    mask: torch.Tensor,
+    centre: torch.Tensor,
+    focal: torch.Tensor,
+    slope_scale: float,
+    where: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The colour logits of :class:`cmc.mpi.fields.ViewColour` in one compiled pass (the CPU,
+    float32): ``out[k, c, r]`` = texture[t, 2c] * dx + texture[t, 2c + 1] * dy, both sampled
+    bilinearly at grid[k, r] (``grid_sample``'s coordinates), t = ``plane_texture[k]``, (dx, dy)
+    the ray's delta (ViewColour's; 0 below :data:`DELTA_FLOOR`, as ViewColour's torch twin);
+    samples whose four taps all lie where ``mask`` is 0 (the texture is 0 there) are skipped.
+
+    Shape: grid [D, R, 2], dirs [R, 3] (the reference camera's frame), texture [G, 6, h, w], mask
+    [h, w], centre and focal [2] (the frame's grid coordinates of the optical axis and grid units
+    per unit slope), where [D, R] bool or None -> [D, 3, R]. Differentiable in the texture only.
+    """
+    if not supported(grid, [texture, dirs, mask]):
+        raise ValueError("sample_view_colour takes float32 CPU tensors and a grid without gradient")
+    frame = np.array([*centre.tolist(), *focal.tolist(), 1 / slope_scale], np.float32)
+    keep = _NO_MASK if where is None else where.contiguous().numpy()
+    pt = np.asarray(plane_texture, np.int64)
+    return _SampleViewColour.apply(
+        grid.contiguous(), dirs.contiguous(), frame, mask.contiguous(), keep, pt, texture.contiguous()
+    )
+
+
 def _linear_taps(n_in: int, n_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Taps of linear resampling from n_in to n_out texels along one axis, as ``F.interpolate``'s
     "bilinear" with ``size`` and ``align_corners=False``: output texel i reads texels i0[i] and
@@ -414,3 +601,8 @@ def warm_up() -> None:
         for where in (None, torch.ones(2, 5, dtype=torch.bool)):
             sample_planes(torch.zeros(2, 5, 2), [0, 1], [tex], mode, where).sum().backward()
     fold_levels([tex, torch.zeros(2, 4, 2, 2, requires_grad=True)]).sum().backward()
+    view = torch.zeros(2, 6, 3, 3, requires_grad=True)
+    dirs = torch.tensor([[0.0, 0.0, 1.0]]).expand(5, 3)
+    for where in (None, torch.ones(2, 5, dtype=torch.bool)):
+        args = (torch.ones(3, 3), torch.zeros(2), torch.ones(2), 1.0, where)
+        sample_view_colour(torch.full((2, 5, 2), 0.5), dirs, [0, 1], view, *args).sum().backward()
