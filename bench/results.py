@@ -26,10 +26,10 @@ SCENE_REPORTS = {s: f"viewcolour_test_{s}.json" for s in ("fern", "room", "trex"
 VAL_REPORTS = {s: f"viewcolour_abs_val_{s}.json" for s in ("fern", "room", "trex")}
 SYNTHETIC_REPORT = "viewcolour_abs_synthetic.json"
 POSE_REPORTS = [  # (scene, report): a scene may have a row per kind of photo
-    ("fern", "poses_e2e_fern_floor005.json"),
-    ("room", "poses_e2e_room_floor005.json"),
-    ("room", "poses_e2e_room_exif_floor005.json"),
-    ("trex", "poses_e2e_trex_exif_floor005.json"),
+    ("fern", "poses_e2e_fern_viewcolour.json"),
+    ("room", "poses_e2e_room_viewcolour.json"),
+    ("room", "poses_e2e_room_exif_viewcolour.json"),
+    ("trex", "poses_e2e_trex_exif_viewcolour.json"),
 ]
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 POSE_ACCURACY_ENLARGED_REPORT = "pose_accuracy_1600_after.json"

@@ -68,6 +68,9 @@ def _taps(gx, gy, H, W):
     )  # fmt: skip
 
 
+# The bilinear taps of one channel, for the view-colour pass. _gather_bilinear and
+# _scatter_bilinear keep their own copies of these loops: written through these helpers they ran
+# 10-15 % slower (bench/PROFILE.md, the view-colour pass).
 @numba.njit(inline="always", **_JIT)
 def _tap_sum(tex, t, c, taps):
     """The bilinear sample of tex[t, c] at :func:`_taps`' footprint ``taps`` (zero outside)."""
