@@ -69,8 +69,8 @@ def _taps(gx, gy, H, W):
 
 
 # The bilinear taps of one channel, for the view-colour pass. _gather_bilinear and
-# _scatter_bilinear keep their own copies of these loops: written through these helpers they ran
-# 10-15 % slower (bench/PROFILE.md, the view-colour pass).
+# _scatter_bilinear keep their own copies of these loops: written through these helpers (the taps
+# as one tuple or as arguments) they ran 10-20 % slower (bench/PROFILE.md, the view-colour pass).
 @numba.njit(inline="always", **_JIT)
 def _tap_sum(tex, t, c, taps):
     """The bilinear sample of tex[t, c] at :func:`_taps`' footprint ``taps`` (zero outside)."""
@@ -446,7 +446,8 @@ class _SampleViewColour(torch.autograd.Function):
         with kernel_cache.PARALLEL_LAUNCH:
             _view_forward_parallel(texture.detach().numpy(), *args, out.numpy(), chunks, where)
         ctx.save_for_backward(grid, dirs, mask)
-        ctx.frame, ctx.where, ctx.plane_texture, ctx.chunks, ctx.shape = frame, where, plane_texture, chunks, texture.shape
+        ctx.frame, ctx.where, ctx.plane_texture = frame, where, plane_texture
+        ctx.chunks, ctx.shape = chunks, texture.shape
         return out
 
     @staticmethod
