@@ -33,7 +33,9 @@ POSE_REPORTS = [  # (scene, report): a scene may have a row per kind of photo
 ]
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 POSE_ACCURACY_ENLARGED_REPORT = "pose_accuracy_1600_after.json"
-PROFILE_REPORT = "profile_job_fern_cpu_a245170.json"
+PROFILE_REPORT = "profile_job_fern_cpu_54fa497.json"
+# The preset of 2026-12-02 (a245170) on the same machine, alternating with PROFILE_REPORT's run
+PROFILE_EARLIER_REPORT = "profile_job_fern_cpu_a245170_s37.json"
 PREVIEW_REPORT = "preview_quality_fern_refresh.json"
 TIMELINE_REPORT = "job_timeline_fern_cpu_ratio083.json"
 BUILD_REPORT = "model_build_time_fern_fused.json"
@@ -232,14 +234,24 @@ def speed() -> list[str]:
             s = sum(stages.get(k, 0.0) for k in keys)
             out.append(f"| {label} | {s:.1f} | {100 * s / r['total_s']:.0f} % |")
         out.append(f"| **total** | **{r['total_s']:.1f}** | |")
-        tb = sum(stages.get(k, 0.0) for k in groups["training"] + groups["preview bake and final bake"])
+        def seconds(report: dict, group: str) -> float:
+            return sum(report["stages_s"].get(k, 0.0) for k in groups[group])
+
+        tb = seconds(r, "training") + seconds(r, "preview bake and final bake")
         out += [
             "",
             f"Training and both bakes {tb:.1f} s (issue 39: <= 90 s, {'met' if tb <= 90 else 'not met'} on this"
-            " machine); the machine of 2026-12-01,",
-            "whose steps took a third longer, ran a preset of the same views in 124.5 s (training 108.3 s,",
-            "bakes 6.5 s: `profile_job_fern_cpu_fold.json`, `PROFILE.md`).",
+            " machine).",
         ]
+        e = load(PROFILE_EARLIER_REPORT)
+        if e is not None:
+            out += [
+                f"The preset of 2026-12-02 ({e['git_commit']}, whose training and bakes took 86.6 s on that day's",
+                "faster machine: `history/profile_job_fern_cpu_a245170.json`), run alternately with it on this",
+                f"machine ({source(e, PROFILE_EARLIER_REPORT)}): training {seconds(e, 'training'):.1f} s, the model",
+                f"build {seconds(e, 'model build (plane sweeps)'):.1f} s, the job {e['total_s']:.1f} s; fern's test"
+                f" views {e['test_psnr']['bake']:.2f} dB from its final bake against {r['test_psnr']['bake']:.2f} dB here.",
+            ]
     b = load(BUILD_REPORT)
     if b is not None:
         med = b["median_s"]
