@@ -234,6 +234,7 @@ def speed() -> list[str]:
             s = sum(stages.get(k, 0.0) for k in keys)
             out.append(f"| {label} | {s:.1f} | {100 * s / r['total_s']:.0f} % |")
         out.append(f"| **total** | **{r['total_s']:.1f}** | |")
+
         def seconds(report: dict, group: str) -> float:
             return sum(report["stages_s"].get(k, 0.0) for k in groups[group])
 
@@ -250,7 +251,8 @@ def speed() -> list[str]:
                 "faster machine: `history/profile_job_fern_cpu_a245170.json`), run alternately with it on this",
                 f"machine ({source(e, PROFILE_EARLIER_REPORT)}): training {seconds(e, 'training'):.1f} s, the model",
                 f"build {seconds(e, 'model build (plane sweeps)'):.1f} s, the job {e['total_s']:.1f} s; fern's test"
-                f" views {e['test_psnr']['bake']:.2f} dB from its final bake against {r['test_psnr']['bake']:.2f} dB here.",
+                f" views {e['test_psnr']['bake']:.2f} dB from its final bake against"
+                f" {r['test_psnr']['bake']:.2f} dB here.",
             ]
     b = load(BUILD_REPORT)
     if b is not None:
