@@ -34,8 +34,9 @@ POSE_REPORTS = [  # (scene, report): a scene may have a row per kind of photo
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 POSE_ACCURACY_ENLARGED_REPORT = "pose_accuracy_1600_after.json"
 PROFILE_REPORT = "profile_job_fern_cpu_54fa497.json"
-# The preset of 2026-12-02 (a245170) on the same machine, alternating with PROFILE_REPORT's run
+# The preset of 2026-12-02 (a245170): on PROFILE_REPORT's machine, alternating with its run; on its own day's
 PROFILE_EARLIER_REPORT = "profile_job_fern_cpu_a245170_s37.json"
+PROFILE_EARLIER_DAY_REPORT = "profile_job_fern_cpu_a245170.json"
 PREVIEW_REPORT = "preview_quality_fern_refresh.json"
 TIMELINE_REPORT = "job_timeline_fern_cpu_ratio083.json"
 BUILD_REPORT = "model_build_time_fern_fused.json"
@@ -244,14 +245,15 @@ def speed() -> list[str]:
             f"Training and both bakes {tb:.1f} s (issue 39: <= 90 s, {'met' if tb <= 90 else 'not met'} on this"
             " machine).",
         ]
-        e = load(PROFILE_EARLIER_REPORT)
-        if e is not None:
+        e, d = load(PROFILE_EARLIER_REPORT), load(PROFILE_EARLIER_DAY_REPORT)
+        if e is not None and d is not None:
+            day_tb = seconds(d, "training") + seconds(d, "preview bake and final bake")
             out += [
-                f"The preset of 2026-12-02 ({e['git_commit']}, whose training and bakes took 86.6 s on that day's",
-                "faster machine: `history/profile_job_fern_cpu_a245170.json`), run alternately with it on this",
-                f"machine ({source(e, PROFILE_EARLIER_REPORT)}): training {seconds(e, 'training'):.1f} s, the model",
-                f"build {seconds(e, 'model build (plane sweeps)'):.1f} s, the job {e['total_s']:.1f} s; fern's test"
-                f" views {e['test_psnr']['bake']:.2f} dB from its final bake against"
+                f"The preset of {str(d['date'])[:10]} ({e['git_commit']}, whose training and bakes took {day_tb:.1f} s",
+                f"on that day's faster machine: {source(d, PROFILE_EARLIER_DAY_REPORT)}), run alternately with it",
+                f"on this machine ({source(e, PROFILE_EARLIER_REPORT)}): training {seconds(e, 'training'):.1f} s,",
+                f"the model build {seconds(e, 'model build (plane sweeps)'):.1f} s, the job {e['total_s']:.1f} s;"
+                f" fern's test views {e['test_psnr']['bake']:.2f} dB from its final bake against"
                 f" {r['test_psnr']['bake']:.2f} dB here.",
             ]
     b = load(BUILD_REPORT)
