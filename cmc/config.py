@@ -114,6 +114,9 @@ class LossConfig:
     # "cauchy" (occlusion-tolerant, on disparity; cmc.method.losses.robust_depth_consistency).
     depth_consistency: Literal["squared", "cauchy"] = "cauchy"
     lambda_alpha_entropy: float = 0.003  # visible alpha pushed to 0 or 1 (cmc.method.losses.alpha_entropy)
+    # Factors on lambda_alpha_entropy over equal shares of the steps, in order ((1.0,): constant):
+    # weaker while the geometry settles, stronger once it has (cmc.method.training.alpha_entropy_weight).
+    alpha_entropy_schedule: tuple[float, ...] = (0.5, 1.5)
     # first fraction of steps without the depth-consistency terms (paper: 15/50 epochs, L_MSE only)
     recon_only_fraction: float = 0.3
     cross_view_colour: float = 0.1  # factor on the colour gradients of MPI i from input view j != i
@@ -193,7 +196,10 @@ def preset_config(name: str, **overrides: Any) -> TrainConfig:
       except L_ac (which blurred novel views in the ablation), the depth-consistency terms
       in an occlusion-tolerant form (cmc.method.losses.robust_depth_consistency), plus a concentration
       prior on each ray's opacity (cmc.method.losses.distortion) and a binary-entropy prior on the alpha
-      a ray sees (cmc.method.losses.alpha_entropy: no faint fog in front of surfaces), a full-resolution
+      a ray sees (cmc.method.losses.alpha_entropy: no faint fog in front of surfaces; at half its
+      weight in the first half of the steps and 1.5 times it in the second,
+      ``loss.alpha_entropy_schedule``: the other views move the geometry further before alpha
+      settles at 0 or 1), a full-resolution
       base colour per group of 7 planes (``model.pyramid.base_groups=8``: a surface hidden in
       the reference photo gets its own texture) sampled bicubically
       (``model.pyramid.base_interpolation``: detail survives the sub-texel shifts of a novel

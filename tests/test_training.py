@@ -10,6 +10,7 @@ import torch
 
 from cmc.config import TrainConfig, preset_config
 from cmc.data.datasets import DEFAULT_LAYERS, SceneError, render_layers, synthetic_cameras, synthetic_scene
+from cmc.errors import ConfigError
 from cmc.eval.metrics import psnr
 from cmc.method import training
 from cmc.method.training import Trainer, TrainingCancelled, load_model, lr_at
@@ -167,6 +168,28 @@ def test_lr_schedule_endpoints():
     cfg = preset_config("paper", steps=100)
     assert lr_at(cfg, 0) == pytest.approx(5e-3)
     assert lr_at(cfg, 99) == pytest.approx(1e-4)
+
+
+def test_alpha_entropy_weight_follows_its_schedule(scene):
+    """The prior's weight is the schedule's factor for the share of the steps a step lies in, and
+    the step's total loss weighs the prior by it; a schedule without factors is refused."""
+    cfg = tiny(steps=8)
+    cfg = replace(cfg, loss=replace(cfg.loss, lambda_alpha_entropy=0.004, alpha_entropy_schedule=(0.5, 1.5)))
+    assert [training.alpha_entropy_weight(cfg, s) for s in (0, 3, 4, 7)] == pytest.approx([0.002, 0.002, 0.006, 0.006])
+    three = replace(cfg, steps=300, loss=replace(cfg.loss, alpha_entropy_schedule=(0.0, 1.0, 2.0)))
+    assert [training.alpha_entropy_weight(three, s) for s in (99, 100, 199, 200, 299)] == pytest.approx(
+        [0.0, 0.004, 0.004, 0.008, 0.008]
+    )
+    trainer = Trainer(scene, cfg)
+    lc = cfg.loss
+    for step, weight in ((0, 0.002), (7, 0.006)):
+        t = trainer.compute_losses(step)
+        assert t.alpha_entropy.item() > 0
+        rest = t.mse + lc.lambda_dc_input * t.dc_input + lc.lambda_ac * t.ac + lc.lambda_dc * t.dc
+        rest = rest + lc.lambda_distortion * t.distortion
+        assert t.total.item() == pytest.approx((rest + weight * t.alpha_entropy).item(), rel=1e-6)
+    with pytest.raises(ConfigError, match="alpha_entropy_schedule"):
+        Trainer(scene, replace(cfg, loss=replace(cfg.loss, alpha_entropy_schedule=())))
 
 
 @pytest.mark.parametrize(

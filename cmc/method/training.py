@@ -26,7 +26,7 @@ import torch
 
 from cmc.config import LossConfig, TrainConfig
 from cmc.data.datasets import Scene, validate_scene
-from cmc.errors import CheckpointError
+from cmc.errors import CheckpointError, ConfigError
 from cmc.geometry.planes import sample_virtual_pose
 from cmc.method.eta import TrainingETA, checkpoints_to_come
 from cmc.method.losses import (
@@ -81,6 +81,14 @@ def lr_at(cfg: TrainConfig, step: int) -> float:
     """Exponential decay from ``cfg.lr`` at step 0 to ``cfg.lr_final`` at the last step."""
     t = step / max(cfg.steps - 1, 1)
     return cfg.lr * (cfg.lr_final / cfg.lr) ** t
+
+
+def alpha_entropy_weight(cfg: TrainConfig, step: int) -> float:
+    """The alpha entropy prior's weight at ``step``: ``loss.lambda_alpha_entropy`` times the factor
+    of ``loss.alpha_entropy_schedule`` for the share of the steps (equal shares, in order) that
+    holds ``step``."""
+    schedule = cfg.loss.alpha_entropy_schedule
+    return cfg.loss.lambda_alpha_entropy * schedule[min(step * len(schedule) // cfg.steps, len(schedule) - 1)]
 
 
 # Configuration fields that change when checkpoints are written, not what is trained.
@@ -149,6 +157,9 @@ class Trainer:
     ):
         """``on_build_progress``: the model build's share done as it goes (:class:`CMCModel`)."""
         validate_scene(scene, min_views=2)
+        schedule = cfg.loss.alpha_entropy_schedule
+        if not schedule or min(schedule) < 0:
+            raise ConfigError(f"loss.alpha_entropy_schedule needs one or more factors >= 0, got {list(schedule)}")
         self.scene, self.cfg = scene, cfg
         self.device = torch.device(device)
         torch.manual_seed(cfg.seed)
@@ -270,7 +281,7 @@ class Trainer:
         unseen = by_target[n:]
         every_out = [o for outs in by_target for o in outs]  # every MPI's render of every target
         return LossTerms.weighted(
-            lc,
+            replace(lc, lambda_alpha_entropy=alpha_entropy_weight(cfg, step)),
             mse=mse,
             dc_input=torch.stack([dc_loss(at_shared[j]) for j in range(n)]).mean()
             if full and lc.lambda_dc_input > 0
