@@ -22,9 +22,9 @@ HERE = Path(__file__).resolve().parent
 REPORTS = HERE / "reports"
 
 # The current report of each kind (in reports/current).
-SCENE_REPORTS = {s: f"viewcolour_test_{s}.json" for s in ("fern", "room", "trex")}
-VAL_REPORTS = {s: f"viewcolour_abs_val_{s}.json" for s in ("fern", "room", "trex")}
-SYNTHETIC_REPORT = "viewcolour_abs_synthetic.json"
+SCENE_REPORTS = {s: f"entsched_test_{s}.json" for s in ("fern", "room", "trex")}
+VAL_REPORTS = {s: f"entsched_val_{s}.json" for s in ("fern", "room", "trex")}
+SYNTHETIC_REPORT = "entsched_synthetic.json"
 POSE_REPORTS = [  # (scene, report): a scene may have a row per kind of photo
     ("fern", "poses_e2e_fern_viewcolour.json"),
     ("room", "poses_e2e_room_viewcolour.json"),
