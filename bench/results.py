@@ -26,10 +26,10 @@ SCENE_REPORTS = {s: f"entsched_test_{s}.json" for s in ("fern", "room", "trex")}
 VAL_REPORTS = {s: f"entsched_val_{s}.json" for s in ("fern", "room", "trex")}
 SYNTHETIC_REPORT = "entsched_synthetic.json"
 POSE_REPORTS = [  # (scene, report): a scene may have a row per kind of photo
-    ("fern", "poses_e2e_fern_viewcolour.json"),
-    ("room", "poses_e2e_room_viewcolour.json"),
-    ("room", "poses_e2e_room_exif_viewcolour.json"),
-    ("trex", "poses_e2e_trex_exif_viewcolour.json"),
+    ("fern", "poses_e2e_fern_entsched.json"),
+    ("room", "poses_e2e_room_entsched.json"),
+    ("room", "poses_e2e_room_exif_entsched.json"),
+    ("trex", "poses_e2e_trex_exif_entsched.json"),
 ]
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 POSE_ACCURACY_ENLARGED_REPORT = "pose_accuracy_1600_after.json"
@@ -140,10 +140,9 @@ def poses() -> list[str]:
         "run's own model with the photo itself: the difference that is the reconstruction's, not the",
         "test views' registration. Registered by: `structure` through the dataset's own sparse model",
         "(fern), `points` by the held-out photo's SIFT matches to the estimated reconstruction's points",
-        "(room, trex: no sparse model ships with them). Every row has the planes of c44f8e2 (a twentieth",
-        "uniform; the reports of 2026-12-07 say f1bf72b+dirty or d05e22e: the first tree held 0aab94d's",
-        "worker change, which this script does not run). With the earlier planes (2026-12-06,",
-        "`bench/reports/history/`): fern -0.26, room -0.21, room with EXIF -0.28, trex -0.32 dB.",
+        "(room, trex: no sparse model ships with them). Every row has the preset with the entropy",
+        "prior's schedule (a663808). Before it (the view-dependent colour term, `bench/reports/history/`,",
+        "`poses_e2e.md`): fern -0.26, room -0.30, room with EXIF -0.42, trex -0.35 dB.",
         "",
         "| scene | photos | steps | dataset poses | estimated poses | PSNR difference | registered by "
         "| after registering to the model | report |",
