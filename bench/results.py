@@ -34,9 +34,9 @@ POSE_REPORTS = [  # (scene, report): a scene may have a row per kind of photo
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 POSE_ACCURACY_ENLARGED_REPORT = "pose_accuracy_1600_after.json"
 PROFILE_REPORT = "profile_job_fern_cpu_54fa497.json"
-# The preset of 2026-12-02 (a245170): on PROFILE_REPORT's machine, alternating with its run; on its own day's
-PROFILE_EARLIER_REPORT = "profile_job_fern_cpu_a245170_s37.json"
-PROFILE_EARLIER_DAY_REPORT = "profile_job_fern_cpu_a245170.json"
+# The preset of 2026-12-02 (a245170), profiled twice:
+PROFILE_EARLIER_REPORT = "profile_job_fern_cpu_a245170_s37.json"  # on PROFILE_REPORT's machine, alternating with it
+PROFILE_EARLIER_DAY_REPORT = "profile_job_fern_cpu_a245170.json"  # on its own day's machine
 PREVIEW_REPORT = "preview_quality_fern_refresh.json"
 TIMELINE_REPORT = "job_timeline_fern_cpu_ratio083.json"
 BUILD_REPORT = "model_build_time_fern_fused.json"
