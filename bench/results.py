@@ -33,12 +33,13 @@ POSE_REPORTS = [  # (scene, report): a scene may have a row per kind of photo
 ]
 POSE_ACCURACY_REPORT = "pose_accuracy_peak.json"
 POSE_ACCURACY_ENLARGED_REPORT = "pose_accuracy_1600_after.json"
-PROFILE_REPORT = "profile_job_fern_cpu_54fa497.json"
+PROFILE_REPORT = "profile_job_fern_cpu_b73079f.json"
+PROFILE_SLOWER_REPORT = "profile_job_fern_cpu_54fa497.json"  # the same step cost on a slower machine
 # The preset of 2026-12-02 (a245170), profiled twice:
-PROFILE_EARLIER_REPORT = "profile_job_fern_cpu_a245170_s37.json"  # on PROFILE_REPORT's machine, alternating with it
+PROFILE_EARLIER_REPORT = "profile_job_fern_cpu_a245170_s37.json"  # on PROFILE_SLOWER_REPORT's machine, alternating
 PROFILE_EARLIER_DAY_REPORT = "profile_job_fern_cpu_a245170.json"  # on its own day's machine
 PREVIEW_REPORT = "preview_quality_fern_refresh.json"
-TIMELINE_REPORT = "job_timeline_fern_cpu_ratio083.json"
+TIMELINE_REPORT = "job_timeline_fern_cpu_entsched.json"
 BUILD_REPORT = "model_build_time_fern_fused.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
 SERVICE_REPORT = "service_cpu.json"
@@ -244,16 +245,19 @@ def speed() -> list[str]:
             f"Training and both bakes {tb:.1f} s (issue 39: <= 90 s, {'met' if tb <= 90 else 'not met'} on this"
             " machine).",
         ]
-        e, d = load(PROFILE_EARLIER_REPORT), load(PROFILE_EARLIER_DAY_REPORT)
-        if e is not None and d is not None:
+        w, e, d = load(PROFILE_SLOWER_REPORT), load(PROFILE_EARLIER_REPORT), load(PROFILE_EARLIER_DAY_REPORT)
+        if w is not None and e is not None and d is not None:
+            slow_tb = seconds(w, "training") + seconds(w, "preview bake and final bake")
             day_tb = seconds(d, "training") + seconds(d, "preview bake and final bake")
             out += [
-                f"The preset of {str(d['date'])[:10]} ({e['git_commit']}, whose training and bakes took {day_tb:.1f} s",
-                f"on that day's faster machine: {source(d, PROFILE_EARLIER_DAY_REPORT)}), run alternately with it",
-                f"on this machine ({source(e, PROFILE_EARLIER_REPORT)}): training {seconds(e, 'training'):.1f} s,",
-                f"the model build {seconds(e, 'model build (plane sweeps)'):.1f} s, the job {e['total_s']:.1f} s;"
-                f" fern's test views {e['test_psnr']['bake']:.2f} dB from its final bake against"
-                f" {r['test_psnr']['bake']:.2f} dB here.",
+                f"On a slower machine ({source(w, PROFILE_SLOWER_REPORT)}; the preset before the entropy prior's",
+                f"schedule, which costs no time) {slow_tb:.1f} s; there the preset of {str(d['date'])[:10]}",
+                f"({e['git_commit']}, whose training and bakes took {day_tb:.1f} s on that day's faster machine:",
+                f"{source(d, PROFILE_EARLIER_DAY_REPORT)}), run alternately ({source(e, PROFILE_EARLIER_REPORT)}):",
+                f"training {seconds(e, 'training'):.1f} s, the model build"
+                f" {seconds(e, 'model build (plane sweeps)'):.1f} s,",
+                f"the job {e['total_s']:.1f} s; fern's test views {e['test_psnr']['bake']:.2f} dB from its final bake"
+                f" against {w['test_psnr']['bake']:.2f} dB.",
             ]
     b = load(BUILD_REPORT)
     if b is not None:
@@ -313,13 +317,11 @@ def speed() -> list[str]:
             )
         out += [
             "",
-            "Seconds depend on the day's machine: jobs of the same preset (before the pose stage's 4 s",
-            "saving) were ready after 104-127 s on most 2-core machines and after 130-164 s on the slower",
-            "ones (`job_timeline.md`). With the planes of c44f8e2, on 2026-12-07's machine (full-loss steps",
-            "0.51-0.58 s against 0.25-0.40 s), 204 s, the ETA within 25 % at 97 % of the polls of a 300-step",
-            "job and 72-77 % of the 80-step jobs' (`job_timeline.md`, last section: slow stretches of steps),",
-            "and a machine's first job, which compiles the kernels, within 25 % at 83 % of its polls since",
-            "0aab94d (69 % before, its ETA up to 6x the truth).",
+            "Seconds depend on the day's machine and drift within it: this preset's four 300-step jobs on",
+            "2026-12-07's fourteenth session's machine were ready after 108, 108, 121 and 127 s (two pairs ten",
+            "minutes apart; `job_timeline.md`, last section), earlier presets' after 104-164 s on other 2-core",
+            "machines and 204 s on the slowest. A machine's first job with its kernels not yet compiled (none",
+            "after `make install` or in the images) has its ETA within 25 % at 83 % of its polls since 0aab94d.",
         ]
     return out
 
