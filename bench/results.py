@@ -40,6 +40,7 @@ PROFILE_EARLIER_REPORT = "profile_job_fern_cpu_a245170_s37.json"  # on PROFILE_S
 PROFILE_EARLIER_DAY_REPORT = "profile_job_fern_cpu_a245170.json"  # on its own day's machine
 PREVIEW_REPORT = "preview_quality_fern_refresh.json"
 TIMELINE_REPORT = "job_timeline_fern_cpu_entsched.json"
+TIMELINE_PAIR_REPORT = "job_timeline_fern_cpu_entsched_pair.json"  # the same code, started seven minutes earlier
 BUILD_REPORT = "model_build_time_fern_fused.json"
 RENDER_REPORT = "render_speed_sgm2_steps300.json"
 SERVICE_REPORT = "service_cpu.json"
@@ -250,8 +251,8 @@ def speed() -> list[str]:
             slow_tb = seconds(w, "training") + seconds(w, "preview bake and final bake")
             day_tb = seconds(d, "training") + seconds(d, "preview bake and final bake")
             out += [
-                f"On a slower machine ({source(w, PROFILE_SLOWER_REPORT)}; the preset before the entropy prior's",
-                f"schedule, which costs no time) {slow_tb:.1f} s; there the preset of {str(d['date'])[:10]}",
+                f"On a slower machine {slow_tb:.1f} s ({source(w, PROFILE_SLOWER_REPORT)}: the preset before the",
+                f"entropy prior's schedule, which costs no time); there the preset of {str(d['date'])[:10]}",
                 f"({e['git_commit']}, whose training and bakes took {day_tb:.1f} s on that day's faster machine:",
                 f"{source(d, PROFILE_EARLIER_DAY_REPORT)}), run alternately ({source(e, PROFILE_EARLIER_REPORT)}):",
                 f"training {seconds(e, 'training'):.1f} s, the model build"
@@ -292,8 +293,8 @@ def speed() -> list[str]:
             f"{source(p, PREVIEW_REPORT)} (`preview_quality.md`; with the planes of c44f8e2 the same",
             "to 0.04 dB at every step, its last section).",
         ]
-    t = load(TIMELINE_REPORT)
-    if t is not None:
+    t, pair = load(TIMELINE_REPORT), load(TIMELINE_PAIR_REPORT)
+    if t is not None and pair is not None:
         out += [
             "",
             "The whole job through `cmc serve`, fern's three phone JPEGs uploaded and polled to `ready`",
@@ -317,11 +318,12 @@ def speed() -> list[str]:
             )
         out += [
             "",
-            "Seconds depend on the day's machine and drift within it: this preset's four 300-step jobs on",
-            "2026-12-07's fourteenth session's machine were ready after 108, 108, 121 and 127 s (two pairs ten",
-            "minutes apart; `job_timeline.md`, last section), earlier presets' after 104-164 s on other 2-core",
-            "machines and 204 s on the slowest. A machine's first job with its kernels not yet compiled (none",
-            "after `make install` or in the images) has its ETA within 25 % at 83 % of its polls since 0aab94d.",
+            "Seconds depend on the day's machine and drift within it: on the same machine seven minutes",
+            f"earlier ({source(pair, TIMELINE_PAIR_REPORT)}) the same code's 300-step jobs were ready after",
+            " and ".join(f"{r['seconds_to_ready']}" for r in pair["runs"]) + " s (`job_timeline.md`, last section);"
+            " earlier presets' after 104-164 s on",
+            "other 2-core machines and 204 s on the slowest. A machine's first job with its kernels not yet compiled",
+            "(none after `make install` or in the images) has its ETA within 25 % at 83 % of its polls since 0aab94d.",
         ]
     return out
 
