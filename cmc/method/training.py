@@ -280,8 +280,9 @@ class Trainer:
             dc_loss = lambda o: depth_consistency(o, self.depth_scale)  # noqa: E731
         unseen = by_target[n:]
         every_out = [o for outs in by_target for o in outs]  # every MPI's render of every target
+        entropy_weight = alpha_entropy_weight(cfg, step)
         return LossTerms.weighted(
-            replace(lc, lambda_alpha_entropy=alpha_entropy_weight(cfg, step)),
+            replace(lc, lambda_alpha_entropy=entropy_weight),
             mse=mse,
             dc_input=torch.stack([dc_loss(at_shared[j]) for j in range(n)]).mean()
             if full and lc.lambda_dc_input > 0
@@ -289,7 +290,7 @@ class Trainer:
             ac=torch.stack([appearance_consistency(o) for o in unseen]).mean() if unseen and lc.lambda_ac > 0 else zero,
             dc=torch.stack([dc_loss(o) for o in unseen]).mean() if unseen else zero,
             distortion=distortion(every_out, self.model.cfg.num_planes) if lc.lambda_distortion > 0 else zero,
-            alpha_entropy=alpha_entropy(every_out) if lc.lambda_alpha_entropy > 0 else zero,
+            alpha_entropy=alpha_entropy(every_out) if entropy_weight > 0 else zero,
         )
 
     def train_step(self) -> dict[str, float]:
