@@ -16,6 +16,14 @@ def _grid_sample_sum(grid, plane_texture, textures, mode):
     return sum(F.grid_sample(t[index], grid[:, None], mode=mode, align_corners=False)[:, :, 0] for t in textures)
 
 
+def _footprint_inside(grid: torch.Tensor, h: int, w: int, mode: str) -> torch.Tensor:
+    """Whether every tap of each sample (2 x 2 bilinear, 4 x 4 bicubic) lies inside an h x w
+    texture (``align_corners=False``)."""
+    lo, hi = (0, 1) if mode == "bilinear" else (-1, 2)
+    first = [torch.floor(((grid[..., i] + 1) * n - 1) / 2) for i, n in ((0, w), (1, h))]
+    return (first[0] + lo >= 0) & (first[0] + hi < w) & (first[1] + lo >= 0) & (first[1] + hi < h)
+
+
 def _assert_same_values_and_gradients(fast, slow, textures, weights):
     """``fast(leaves)`` and ``slow(leaves)`` (functions of copies of ``textures`` with gradients)
     agree in value and in the gradients of ``sum(out * weights)``; returns the fast one's output
@@ -38,11 +46,15 @@ def _assert_same_values_and_gradients(fast, slow, textures, weights):
 @pytest.mark.parametrize("plane_texture", [[0, 1, 2, 3, 4], [0, 0, 0, 1, 1]])
 def test_sample_planes_matches_grid_sample_and_its_gradient(plane_texture, mode, zeros):
     """With ``zeros``, the gradient reaching the samples is exactly 0 at most samples and
-    channels (as for faint samples' colours, which the backward pass skips)."""
+    channels (as for faint samples' colours, which the backward pass skips). The samples cover
+    both paths of the kernels: footprints wholly inside the larger texture (no test per tap)
+    and footprints reaching past its edge."""
     gen = torch.Generator().manual_seed(0)
     textures = [torch.randn(max(plane_texture) + 1, 4, h, w, generator=gen) for h, w in ((9, 13), (4, 6))]
     # Points beyond the texture (|g| > 1) sample zero padding, as grid_sample's do.
     grid = torch.rand(len(plane_texture), 300, 2, generator=gen) * 3 - 1.5
+    inside = _footprint_inside(grid, 9, 13, mode)
+    assert 0 < inside.sum() < inside.numel(), inside.sum()
     weights = torch.randn(len(plane_texture), 4, 300, generator=gen)
     if zeros:
         weights[torch.rand(weights.shape, generator=gen) < 0.7] = 0
