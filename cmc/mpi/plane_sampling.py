@@ -76,6 +76,13 @@ def _tap_sum(tex, t, c, taps):
     """The bilinear sample of tex[t, c] at :func:`_taps`' footprint ``taps`` (zero outside)."""
     x0, y0, w00, w01, w10, w11, vx0, vx1, vy0, vy1 = taps
     s = np.float32(0)
+    if vx0 and vx1 and vy0 and vy1:  # all four taps inside: no test per tap
+        top, bottom = tex[t, c, y0], tex[t, c, y0 + 1]
+        s += w00 * top[x0]
+        s += w01 * top[x0 + 1]
+        s += w10 * bottom[x0]
+        s += w11 * bottom[x0 + 1]
+        return s
     if vy0:
         if vx0:
             s += w00 * tex[t, c, y0, x0]
@@ -93,6 +100,13 @@ def _tap_sum(tex, t, c, taps):
 def _tap_add(grad_tex, t, c, taps, g):
     """The transpose of :func:`_tap_sum`: grad_tex[t, c] += each tap's weight times g."""
     x0, y0, w00, w01, w10, w11, vx0, vx1, vy0, vy1 = taps
+    if vx0 and vx1 and vy0 and vy1:  # all four taps inside: no test per tap
+        top, bottom = grad_tex[t, c, y0], grad_tex[t, c, y0 + 1]
+        top[x0] += w00 * g
+        top[x0 + 1] += w01 * g
+        bottom[x0] += w10 * g
+        bottom[x0 + 1] += w11 * g
+        return
     if vy0:
         if vx0:
             grad_tex[t, c, y0, x0] += w00 * g
