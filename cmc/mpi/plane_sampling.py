@@ -74,7 +74,8 @@ def _taps(gx, gy, H, W):
 
 # The bilinear taps of one channel, for the view-colour pass. _gather_bilinear and
 # _scatter_bilinear keep their own copies of these loops: written through these helpers (the taps
-# as one tuple or as arguments) they ran 10-20 % slower (bench/PROFILE.md, the view-colour pass).
+# as one tuple or as arguments) they ran 10-20 % slower, and with the untested interior paths the
+# gathers 1.7-1.8 times slower (bench/PROFILE.md, the view-colour pass and the untested path).
 @numba.njit(inline="always", **_JIT)
 def _tap_sum(tex, t, c, taps):
     """The bilinear sample of tex[t, c] at :func:`_taps`' footprint ``taps`` (zero outside)."""
