@@ -45,6 +45,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import importlib.util
+import inspect
 import json
 import os
 import platform
@@ -158,12 +159,18 @@ def main() -> None:
         if hasattr(old, "PackedTextures"):  # a texture_kernel of packed textures: its own copy of them
             old_packed = old.PackedTextures.pack([np.ascontiguousarray(t) for t in baked.textures])
             old_geometry = [old.MPIGeometry.from_frame(f) for f in baked.frames]
+            # The bake's colour sampling, where the old kernel has a choice (bicubic came later).
+            sampling = (
+                {"colour_interpolation": baked.colour_interpolation}
+                if "colour_interpolation" in inspect.signature(old.render).parameters
+                else {}
+            )
 
             def render_before(K, pose, w, h):
                 P_t = torch.as_tensor(np.asarray(pose), dtype=torch.float32)
                 weights, use = blend_selection(baked.frames, P_t)
                 rgb, depth, acc = old.render(
-                    old_packed, old_geometry, weights.numpy(), use, K, pose, w, h, threads=args.threads
+                    old_packed, old_geometry, weights.numpy(), use, K, pose, w, h, threads=args.threads, **sampling
                 )
                 return ImageOutput(torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(acc))
 
