@@ -10,7 +10,7 @@ import torch
 
 from cmc.geometry.cameras import look_at
 from cmc.mpi._reference import render_texture_image_reference
-from cmc.mpi.rendering import MPIFrame, blend, render_texture_image
+from cmc.mpi.rendering import BICUBIC_MIN_WEIGHT, MPIFrame, blend, render_texture_image
 from cmc.serving.baking import BakedScene
 from cmc.serving.texture_kernel import (
     COLS,
@@ -154,6 +154,32 @@ def test_bicubic_colour_in_the_kernel_is_the_torch_renderers(camera):
     differ = np.abs(bilinear[0] - runs[0][0]).max()
     assert differ < 1e-5 if camera == "reference" else differ > 0.05
     assert np.array_equal(bilinear[2], runs[0][2])  # the coverage does not: alpha stays bilinear
+
+
+@pytest.mark.parametrize("camera", ["sideways", "between the planes"])
+def test_faint_samples_take_bilinear_colour_in_every_renderer(camera):
+    """Where colour is bicubic, a sample weighing less than ``bicubic_min_weight`` in its pixel
+    takes its four texels' bilinear premultiplied colour: the kernel, the whole-image torch path
+    and the slow twin agree at 0 (every sample bicubic), at the default and at 2 (every sample
+    bilinear: the bilinear render to the bit). The default moves some pixels, none by more than
+    the faint samples' summed weight (under D times the threshold)."""
+    tex = _textures(np.random.default_rng(10))
+    P = CAMERAS[camera]
+    packed, geometry = PackedTextures.pack([tex]), [MPIGeometry.from_frame(FRAME)]
+    straight = (torch.as_tensor(tex).permute(0, 3, 1, 2).float() / 255.0)[:, :3]
+    Kt, Pt = torch.as_tensor(K, dtype=torch.float32), torch.as_tensor(P, dtype=torch.float32)
+    runs = {}
+    for t in (0.0, BICUBIC_MIN_WEIGHT, 2.0):
+        runs[t] = render(
+            packed, geometry, np.ones(1), [0], K, P, W, H, 0.0, 1, colour_interpolation="bicubic", bicubic_min_weight=t
+        )
+        for twin in (render_texture_image, render_texture_image_reference):
+            out = twin(_premultiplied(tex), FRAME, Kt, Pt, W, H, straight_rgb=straight, bicubic_min_weight=t)
+            _assert_close(runs[t], blend([out], torch.ones(1)))
+    bilinear = _fast([tex], [FRAME], np.ones(1), P)
+    assert all(np.array_equal(a, b) for a, b in zip(runs[2.0], bilinear, strict=True))
+    moved = np.abs(runs[BICUBIC_MIN_WEIGHT][0] - runs[0.0][0]).max()
+    assert 1e-3 < moved <= D * BICUBIC_MIN_WEIGHT
 
 
 def test_the_kernel_refuses_an_unknown_interpolation():

@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from cmc.geometry.cameras import pixel_rays
 from cmc.geometry.planes import pixel_centers
 from cmc.mpi.fields import MPIField, sample_colour_bicubic
-from cmc.mpi.rendering import MPIFrame, RayOutput
+from cmc.mpi.rendering import BICUBIC_MIN_WEIGHT, MPIFrame, RayOutput
 
 
 def render_rays_reference(
@@ -62,6 +62,7 @@ def render_texture_image_reference(
     width: int,
     height: int,
     straight_rgb: torch.Tensor | None = None,
+    bicubic_min_weight: float = BICUBIC_MIN_WEIGHT,
 ) -> RayOutput:
     """Slow, obviously-correct twin of :func:`cmc.mpi.rendering.render_texture_image` for tests: one plane at a time,
     by intersecting each pixel's world-space ray with the plane and projecting the point into the
@@ -88,9 +89,10 @@ def render_texture_image_reference(
         g = frame.grid_from_pixels(pix[:, :2] / pix[:, 2:3])
         g = torch.where(in_front[:, None], g, torch.full_like(g, 3.0))
         s = F.grid_sample(rgba_premult[k : k + 1], g[None, None], align_corners=False)[0, :, 0].T  # [P, 4]
-        if straight_rgb is not None:  # bicubic straight colour times bilinear alpha
+        if straight_rgb is not None:  # bicubic straight colour times bilinear alpha, where it weighs enough
             c = sample_colour_bicubic(straight_rgb[k : k + 1], g[None, None])[0, :, 0].T
-            s = torch.cat([c * s[:, 3:], s[:, 3:]], 1)
+            strong = trans[:, None] * s[:, 3:] >= bicubic_min_weight
+            s = torch.cat([torch.where(strong, c * s[:, 3:], s[:, :3]), s[:, 3:]], 1)
         rgb = rgb + trans[:, None] * s[:, :3]
         depth = depth + trans * s[:, 3] * torch.where(in_front, lam, torch.zeros_like(lam))
         trans = trans * (1 - s[:, 3])

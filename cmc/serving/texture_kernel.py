@@ -9,7 +9,10 @@ RGBA texel (straight alpha, as in the atlases) per word, each plane framed by on
 texel. A bilinear sample is four word loads, and a tap beyond the plane's edge reads the frame:
 zero padding without a branch or a clamp. A scene baked with bicubic colour
 (``colour_interpolation``) takes alpha the same way and colour from 16 texels, their indices
-clamped to the plane's edge. Beside it, per texel one reach bit and per 8x8 texel
+clamped to the plane's edge, where the sample weighs at least ``bicubic_min_weight`` in its
+pixel (:data:`cmc.mpi.rendering.BICUBIC_MIN_WEIGHT`), and from the four bilinear taps where it
+weighs less: a sixteen-texel sample costs three times a four-texel one (the extra texel rows,
+not the arithmetic), and most samples with alpha weigh under 1 %. Beside it, per texel one reach bit and per 8x8 texel
 tile a summed-area table of occupancy (4 % more memory), both computed when a scene is loaded.
 
 Order of work: the target rows go in bands of ``ROWS``, a band in blocks of ``ROWS`` x ``COLS``
@@ -67,6 +70,7 @@ from numba.cpython.unsafe.numbers import trailing_zeros  # numba's count of trai
 
 from cmc import kernel_cache
 from cmc.mpi.plane_sampling import INTERPOLATIONS, check_interpolation, cubic_weights
+from cmc.mpi.rendering import BICUBIC_MIN_WEIGHT
 
 TILE_SHIFT = 3
 TILE = 1 << TILE_SHIFT  # texels per occupancy tile side
@@ -254,7 +258,7 @@ def _plane_params(g: MPIGeometry, h: int, w: int, K_tgt: np.ndarray, world_from_
 @numba.njit(nogil=True, cache=True, boundscheck=False, error_model="numpy", fastmath={"contract"})
 def _render_bands(
     texels, reach, base, shapes, sat, sbase, otiles, use, weights, Q, ax, bx, ay, by, e, split,
-    width, height, band0, band_step, rows, cols, min_trans, cubic, rgb, depth, acc,
+    width, height, band0, band_step, rows, cols, min_trans, cubic, cubic_min, rgb, depth, acc,
 ):  # pragma: no cover - compiled  # fmt: skip
     n_mpi = use.shape[0]
     inv255 = np.float32(1.0 / 255.0)
@@ -380,7 +384,9 @@ def _render_bands(
                             w11 = wy * wx * np.float32(p11 >> 24)
                             sa = w00 + w01 + w10 + w11
                             T = trans[g]
-                            if cubic:  # straight colour over 4 x 4 texels (edge texels repeated) x alpha
+                            # Straight colour over 4 x 4 texels (edge texels repeated) x alpha, where
+                            # the sample weighs cubic_min or more in its pixel.
+                            if cubic and T * sa * inv255 >= cubic_min:
                                 cx, cy = cubic_weights(wx), cubic_weights(wy)
                                 sr, sg, sb = zero, zero, zero
                                 for a in range(4):
@@ -478,6 +484,7 @@ def render(
     min_transmittance: float = 1e-4,
     threads: int | None = None,
     colour_interpolation: str = "bilinear",
+    bicubic_min_weight: float = BICUBIC_MIN_WEIGHT,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The blend of MPIs ``use`` (blend weights ``weights[i]``) seen from a target camera.
 
@@ -493,7 +500,9 @@ def render(
             of the 4 x 4 texels around it under Keys' cubic kernel (:func:`cmc.mpi.plane_sampling.cubic_weights`,
             texels past the plane's edge repeat the edge), clamped to [0, 1]: how
             :class:`cmc.mpi.fields.PyramidPlaneField` samples its base colours with
-            ``base_interpolation="bicubic"``.
+            ``base_interpolation="bicubic"``; a sample that weighs less than
+            ``bicubic_min_weight`` in its pixel (transmittance times alpha) is taken bilinearly
+            (0: every sample bicubic).
     Returns:
         as :func:`cmc.mpi.rendering.blend`: rgb [height, width, 3] (colour times coverage), depth
         [height, width] (target z, 0 where the coverage is below 1e-3), coverage [height, width],
@@ -523,7 +532,7 @@ def render(
         _render_bands(
             packed.texels, packed.reach, packed.base, packed.shapes, packed.sat, packed.sbase, packed.otiles,
             use_a, w_use, Q, ax, bx, ay, by, e, split, width, height, band0, n, ROWS, COLS,
-            float(min_transmittance), cubic, rgb, depth, acc,
+            float(min_transmittance), cubic, np.float32(bicubic_min_weight), rgb, depth, acc,
         )  # fmt: skip
 
     others = [_pool().submit(part, t) for t in range(1, n)]
