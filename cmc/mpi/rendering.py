@@ -35,8 +35,8 @@ from cmc.mpi.fields import MPIField, TextureField, sample_colour_bicubic
 # cmc.serving.texture_kernel), a sample weighing less than this in its pixel (transmittance times
 # alpha) takes the bilinear premultiplied colour of its four texels instead: that moves the pixel
 # by at most the sample's weight times the two colours' difference, and a render of fern takes
-# 30 % less time (a sixteen-texel sample costs three times a four-texel one, and most samples
-# with any alpha weigh under 1 %; bench/PROFILE.md).
+# 30 % less time (most samples with any alpha weigh under 1 %, and every sample bicubic made the
+# render 2.4 times as long as none; bench/PROFILE.md).
 BICUBIC_MIN_WEIGHT = 0.01
 
 
