@@ -385,9 +385,10 @@ def _render_bands(
                             w11 = wy * wx * np.float32(p11 >> 24)
                             sa = w00 + w01 + w10 + w11
                             T = trans[g]
+                            ta = T * sa * inv255  # the sample's weight in its pixel
                             # Straight colour over 4 x 4 texels (edge texels repeated) x alpha, where
                             # the sample weighs cubic_min or more in its pixel.
-                            if cubic and T * sa * inv255 >= cubic_min:
+                            if cubic and ta >= cubic_min:
                                 cx, cy = cubic_weights(wx), cubic_weights(wy)
                                 sr, sg, sb = zero, zero, zero
                                 for a in range(4):
@@ -425,7 +426,6 @@ def _render_bands(
                             cr[g] += tc * sr
                             cg[g] += tc * sg
                             cb[g] += tc * sb
-                            ta = T * sa * inv255
                             cd[g] += ta * ek
                             T -= ta
                             trans[g] = T
