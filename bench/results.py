@@ -39,6 +39,12 @@ PROFILE_SLOWER_REPORT = "profile_job_fern_cpu_54fa497.json"  # the same step cos
 PROFILE_EARLIER_REPORT = "profile_job_fern_cpu_a245170_s37.json"  # on PROFILE_SLOWER_REPORT's machine, alternating
 PROFILE_EARLIER_DAY_REPORT = "profile_job_fern_cpu_a245170.json"  # on its own day's machine
 PREVIEW_REPORT = "preview_quality_fern_refresh.json"
+# e74aa6c's preset on 2026-12-08's faster machine (AMD EPYC, 2 threads): two profiles and a job timeline.
+PROFILE_FAST_MACHINE_REPORTS = (
+    "profile_job_fern_cpu_e74aa6c_epyc_r2.json",
+    "profile_job_fern_cpu_e74aa6c_epyc_r3.json",
+)
+TIMELINE_FAST_MACHINE_REPORT = "job_timeline_fern_cpu_epyc.json"
 TIMELINE_REPORT = "job_timeline_fern_cpu_entsched.json"
 TIMELINE_PAIR_REPORT = "job_timeline_fern_cpu_entsched_pair.json"  # the same code, started seven minutes earlier
 BUILD_REPORT = "model_build_time_fern_fused.json"
@@ -260,6 +266,18 @@ def speed() -> list[str]:
                 f"the job {e['total_s']:.1f} s; fern's test views {e['test_psnr']['bake']:.2f} dB from its final bake"
                 f" against {w['test_psnr']['bake']:.2f} dB.",
             ]
+    fast = [(name, load(name)) for name in PROFILE_FAST_MACHINE_REPORTS]
+    if all(f is not None for _, f in fast):
+        out += [
+            "On 2026-12-08's faster machine (AMD EPYC, 2 threads), the same code twice, other jobs between",
+            f"({', '.join(source(f, name) for name, f in fast)}): training and both bakes",
+            " and ".join(f"{seconds(f, 'training') + seconds(f, 'preview bake and final bake'):.1f}" for _, f in fast)
+            + " s, the model build "
+            + " and ".join(f"{seconds(f, 'model build (plane sweeps)'):.1f}" for _, f in fast)
+            + " s, the job "
+            + " and ".join(f"{f['total_s']:.1f}" for _, f in fast)
+            + " s (`PROFILE.md`, its section of that date).",
+        ]
     b = load(BUILD_REPORT)
     if b is not None:
         med = b["median_s"]
@@ -320,10 +338,23 @@ def speed() -> list[str]:
             "",
             "Seconds depend on the day's machine and drift within it: on the same machine seven minutes",
             f"earlier ({source(pair, TIMELINE_PAIR_REPORT)}) the same code's 300-step jobs were ready after",
-            " and ".join(f"{r['seconds_to_ready']}" for r in pair["runs"]) + " s (`job_timeline.md`, last section);"
+            " and ".join(f"{r['seconds_to_ready']}" for r in pair["runs"])
+            + ' s (`job_timeline.md`, "The entropy prior\'s schedule, on a faster machine");'
             " earlier presets' after 104-164 s on",
             "other 2-core machines and 204 s on the slowest. A machine's first job with its kernels not yet compiled",
             "(none after `make install` or in the images) has its ETA within 25 % at 83 % of its polls since 0aab94d.",
+        ]
+    f = load(TIMELINE_FAST_MACHINE_REPORT)
+    if f is not None:
+        out += [
+            "On 2026-12-08's faster machine (AMD EPYC, 2 threads; the same code as the profile above,"
+            f" {source(f, TIMELINE_FAST_MACHINE_REPORT)}):",
+            " and ".join(f"{r['seconds_to_ready']}" for r in f["runs"])
+            + " s to `ready` for "
+            + " and ".join(f"{r['steps']}" for r in f["runs"])
+            + " steps, the previews after "
+            + "; ".join(", ".join(f"{t} s" for t in r["seconds_to_previews"].values()) for r in f["runs"])
+            + " (`job_timeline.md`, its section of that date).",
         ]
     return out
 
